@@ -1,0 +1,431 @@
+//! The `.nolf` asset: one safetensors file (readable from numpy/torch) whose `__metadata__`
+//! holds versioned, self-describing JSON (`nolf`) and its SHA-256 (`nolf_sha256`); the JSON in
+//! turn holds a SHA-256 per tensor. Loading validates the container, the checksums, every
+//! shape against the metadata (before any allocation sized by it), every index and range, the
+//! perfect hash (collision-free) and finite weights. Any failure is an [`AssetError`].
+
+use std::{collections::BTreeMap, fmt, path::Path};
+
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::{
+    cubes::{Aabb, TextureCubes},
+    mlp::{HIDDEN, SpecularMlp},
+    psh::SpatialHash,
+    sh::SH_COEFFS,
+};
+
+pub const FORMAT_NAME: &str = "nephele-nolf";
+pub const FORMAT_VERSION: u32 = 1;
+/// Files above this size are refused before reading.
+pub const MAX_FILE_BYTES: u64 = 2 << 30;
+const MAX_GRID: u32 = 512;
+const MAX_BRICK: u32 = 32;
+const MAX_FINE: u32 = 4096;
+const MAX_FEATURES: u32 = 32;
+const MAX_TABLE_EDGE: u32 = 1024;
+
+#[derive(Debug, thiserror::Error)]
+pub enum AssetError {
+    #[error("cannot read {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("asset is {0} bytes; the limit is {MAX_FILE_BYTES}")]
+    TooLarge(u64),
+    #[error("not a valid .nolf container: {0}")]
+    Container(String),
+    #[error("asset format {found:?} version {version} is not supported (this build reads {FORMAT_NAME:?} version {FORMAT_VERSION})")]
+    Version { found: String, version: u32 },
+    #[error("asset metadata is corrupt: {0}")]
+    Metadata(String),
+    #[error("tensor {0:?} is missing")]
+    Missing(&'static str),
+    #[error("tensor {name:?} has dtype {found:?} and shape {shape:?}; expected {want_dtype:?} {want_shape:?}")]
+    Shape { name: &'static str, found: Dtype, shape: Vec<usize>, want_dtype: Dtype, want_shape: Vec<usize> },
+    #[error("tensor {0:?} fails its checksum (file corrupted)")]
+    Checksum(&'static str),
+    #[error("asset content is invalid: {0}")]
+    Invalid(String),
+}
+
+fn invalid(s: impl Into<String>) -> AssetError {
+    AssetError::Invalid(s.into())
+}
+
+/// Grid sizes of a set of texture cubes.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CubesMeta {
+    pub grid: u32,
+    pub brick: u32,
+    pub bricks: u32,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PshMeta {
+    pub grid: u32,
+    pub table_edge: u32,
+    pub offset_edge: u32,
+    pub features: u32,
+}
+
+/// Default ray-marching settings the asset was made for.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MarchMeta {
+    /// Fixed step δ in object units.
+    pub step: f32,
+    /// Rays with coarse opacity below this are misses.
+    pub alpha_min: f32,
+}
+
+/// The `nolf` JSON in the safetensors header.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AssetMeta {
+    pub format: String,
+    pub version: u32,
+    pub name: String,
+    pub bounds: Aabb,
+    pub march: MarchMeta,
+    pub density: CubesMeta,
+    pub diffuse: CubesMeta,
+    pub psh: PshMeta,
+    pub mlp_input: u32,
+    /// Where the asset came from: generator or dataset, settings, time, metrics.
+    pub provenance: serde_json::Value,
+    /// Hex SHA-256 of each tensor's bytes.
+    pub checksums: BTreeMap<String, String>,
+}
+
+/// A loaded, validated i-NOLF asset.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Asset {
+    pub name: String,
+    pub bounds: Aabb,
+    pub march: MarchMeta,
+    /// σ per object unit, 1 channel.
+    pub density: TextureCubes,
+    /// Diffuse RGB and specular tint, 4 channels.
+    pub diffuse: TextureCubes,
+    pub psh: SpatialHash,
+    pub mlp: SpecularMlp,
+    pub provenance: serde_json::Value,
+}
+
+fn sha_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn f16_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| half::f16::from_f32(*x).to_le_bytes()).collect()
+}
+fn le_bytes<T: bytemuck::Pod>(v: &[T]) -> Vec<u8> {
+    bytemuck::cast_slice(v).to_vec()
+}
+
+/// Tensor names, dtypes and shapes implied by the metadata, computed with checked arithmetic
+/// so a hostile size field is an error instead of an allocation.
+fn expected_tensors(m: &AssetMeta) -> Result<Vec<(&'static str, Dtype, Vec<usize>)>, AssetError> {
+    let cube = |c: &CubesMeta, what: &str| -> Result<(usize, usize), AssetError> {
+        if c.grid == 0 || c.grid > MAX_GRID || c.brick == 0 || c.brick > MAX_BRICK || c.grid * c.brick > MAX_FINE {
+            return Err(invalid(format!("{what} grid {}×{} is outside the supported range", c.grid, c.brick)));
+        }
+        if c.bricks as u64 > (c.grid as u64).pow(3) {
+            return Err(invalid(format!("{what} has {} bricks for a {}³ grid", c.bricks, c.grid)));
+        }
+        Ok((c.grid as usize, c.brick as usize + 1))
+    };
+    let (bd, ed) = cube(&m.density, "density")?;
+    let (bc, ec) = cube(&m.diffuse, "diffuse")?;
+    let p = &m.psh;
+    if p.grid == 0 || p.grid > crate::psh::MAX_COORD || p.table_edge == 0 || p.table_edge > MAX_TABLE_EDGE {
+        return Err(invalid(format!("PSH grid {} / table {} outside the supported range", p.grid, p.table_edge)));
+    }
+    if p.offset_edge == 0 || p.offset_edge > MAX_TABLE_EDGE || p.features == 0 || p.features > MAX_FEATURES {
+        return Err(invalid(format!("PSH offsets {} / features {} outside the supported range", p.offset_edge, p.features)));
+    }
+    let input = p.features as usize + SH_COEFFS + 1;
+    if m.mlp_input as usize != input {
+        return Err(invalid(format!("MLP input {} does not match {} features + 17", m.mlp_input, p.features)));
+    }
+    let (m3, r3) = ((p.table_edge as usize).pow(3), (p.offset_edge as usize).pow(3));
+    Ok(vec![
+        ("density.index", Dtype::I32, vec![bd, bd, bd]),
+        ("density.values", Dtype::F16, vec![m.density.bricks as usize, ed, ed, ed]),
+        ("diffuse.index", Dtype::I32, vec![bc, bc, bc]),
+        ("diffuse.values", Dtype::F16, vec![m.diffuse.bricks as usize, ec, ec, ec, 4]),
+        ("psh.keys", Dtype::U32, vec![m3]),
+        ("psh.offsets", Dtype::U32, vec![r3]),
+        ("psh.values", Dtype::F16, vec![m3, p.features as usize]),
+        ("mlp.w0", Dtype::F32, vec![HIDDEN, input]),
+        ("mlp.b0", Dtype::F32, vec![HIDDEN]),
+        ("mlp.w1", Dtype::F32, vec![HIDDEN, HIDDEN]),
+        ("mlp.b1", Dtype::F32, vec![HIDDEN]),
+        ("mlp.w2", Dtype::F32, vec![4, HIDDEN]),
+        ("mlp.b2", Dtype::F32, vec![4]),
+    ])
+}
+
+impl Asset {
+    fn meta_without_checksums(&self) -> AssetMeta {
+        AssetMeta {
+            format: FORMAT_NAME.into(),
+            version: FORMAT_VERSION,
+            name: self.name.clone(),
+            bounds: self.bounds,
+            march: self.march,
+            density: CubesMeta { grid: self.density.grid, brick: self.density.brick, bricks: self.density.brick_count() as u32 },
+            diffuse: CubesMeta { grid: self.diffuse.grid, brick: self.diffuse.brick, bricks: self.diffuse.brick_count() as u32 },
+            psh: PshMeta {
+                grid: self.psh.grid,
+                table_edge: self.psh.table_edge,
+                offset_edge: self.psh.offset_edge,
+                features: self.psh.features,
+            },
+            mlp_input: self.mlp.input as u32,
+            provenance: self.provenance.clone(),
+            checksums: BTreeMap::new(),
+        }
+    }
+
+    /// Serialises to `.nolf` bytes. Fails only if the asset itself is invalid.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, AssetError> {
+        self.validate()?;
+        let mut meta = self.meta_without_checksums();
+        let data: Vec<(&'static str, Vec<u8>)> = vec![
+            ("density.index", le_bytes(&self.density.index)),
+            ("density.values", f16_bytes(&self.density.values)),
+            ("diffuse.index", le_bytes(&self.diffuse.index)),
+            ("diffuse.values", f16_bytes(&self.diffuse.values)),
+            ("psh.keys", le_bytes(&self.psh.keys)),
+            ("psh.offsets", le_bytes(&self.psh.offsets)),
+            ("psh.values", f16_bytes(&self.psh.values)),
+            ("mlp.w0", le_bytes(&self.mlp.w0)),
+            ("mlp.b0", le_bytes(&self.mlp.b0)),
+            ("mlp.w1", le_bytes(&self.mlp.w1)),
+            ("mlp.b1", le_bytes(&self.mlp.b1)),
+            ("mlp.w2", le_bytes(&self.mlp.w2)),
+            ("mlp.b2", le_bytes(&self.mlp.b2)),
+        ];
+        for (name, bytes) in &data {
+            meta.checksums.insert((*name).into(), sha_hex(bytes));
+        }
+        let shapes = expected_tensors(&meta)?;
+        let mut views = Vec::new();
+        for ((name, dtype, shape), (_, bytes)) in shapes.into_iter().zip(&data) {
+            let view = TensorView::new(dtype, shape, bytes).map_err(|e| invalid(format!("{name}: {e}")))?;
+            views.push((name, view));
+        }
+        let json = serde_json::to_string(&meta).map_err(|e| invalid(e.to_string()))?;
+        let info = [("nolf_sha256".to_string(), sha_hex(json.as_bytes())), ("nolf".to_string(), json)];
+        safetensors::serialize(views, Some(info.into_iter().collect())).map_err(|e| AssetError::Container(e.to_string()))
+    }
+
+    pub fn save(&self, path: &Path) -> Result<(), AssetError> {
+        let bytes = self.to_bytes()?;
+        std::fs::write(path, bytes).map_err(|source| AssetError::Io { path: path.display().to_string(), source })
+    }
+
+    pub fn load(path: &Path) -> Result<Self, AssetError> {
+        let io = |source| AssetError::Io { path: path.display().to_string(), source };
+        let len = std::fs::metadata(path).map_err(io)?.len();
+        if len > MAX_FILE_BYTES {
+            return Err(AssetError::TooLarge(len));
+        }
+        Self::from_bytes(&std::fs::read(path).map_err(io)?)
+    }
+
+    /// Parses and fully validates `.nolf` bytes.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, AssetError> {
+        let file = SafeTensors::deserialize(bytes).map_err(|e| AssetError::Container(e.to_string()))?;
+        let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| AssetError::Container(e.to_string()))?;
+        let info = header.metadata().as_ref().ok_or_else(|| AssetError::Metadata("no __metadata__".into()))?;
+        let json = info.get("nolf").ok_or_else(|| AssetError::Metadata("no nolf entry".into()))?;
+        if info.get("nolf_sha256").map(String::as_str) != Some(sha_hex(json.as_bytes()).as_str()) {
+            return Err(AssetError::Metadata("checksum mismatch".into()));
+        }
+        let meta: AssetMeta = serde_json::from_str(json).map_err(|e| AssetError::Metadata(e.to_string()))?;
+        if meta.format != FORMAT_NAME || meta.version != FORMAT_VERSION {
+            return Err(AssetError::Version { found: meta.format, version: meta.version });
+        }
+        let mut tensors = BTreeMap::new();
+        for (name, dtype, shape) in expected_tensors(&meta)? {
+            let view = file.tensor(name).map_err(|_| AssetError::Missing(name))?;
+            if view.dtype() != dtype || view.shape() != shape.as_slice() {
+                return Err(AssetError::Shape { name, found: view.dtype(), shape: view.shape().to_vec(), want_dtype: dtype, want_shape: shape });
+            }
+            if meta.checksums.get(name).map(String::as_str) != Some(sha_hex(view.data()).as_str()) {
+                return Err(AssetError::Checksum(name));
+            }
+            tensors.insert(name, view.data());
+        }
+        let f32s = |n: &str| bytemuck::pod_collect_to_vec::<u8, f32>(tensors[n]);
+        let i32s = |n: &str| bytemuck::pod_collect_to_vec::<u8, i32>(tensors[n]);
+        let u32s = |n: &str| bytemuck::pod_collect_to_vec::<u8, u32>(tensors[n]);
+        let f16s = |n: &str| -> Vec<f32> {
+            tensors[n].chunks_exact(2).map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
+        };
+        let cubes = |m: &CubesMeta, channels, prefix: &str| TextureCubes {
+            bounds: meta.bounds,
+            grid: m.grid,
+            brick: m.brick,
+            channels,
+            index: i32s(&format!("{prefix}.index")),
+            values: f16s(&format!("{prefix}.values")),
+        };
+        let asset = Asset {
+            name: meta.name.clone(),
+            bounds: meta.bounds,
+            march: meta.march,
+            density: cubes(&meta.density, 1, "density"),
+            diffuse: cubes(&meta.diffuse, 4, "diffuse"),
+            psh: SpatialHash {
+                bounds: meta.bounds,
+                grid: meta.psh.grid,
+                table_edge: meta.psh.table_edge,
+                offset_edge: meta.psh.offset_edge,
+                features: meta.psh.features,
+                keys: u32s("psh.keys"),
+                offsets: u32s("psh.offsets"),
+                values: f16s("psh.values"),
+            },
+            mlp: SpecularMlp {
+                input: meta.mlp_input as usize,
+                w0: f32s("mlp.w0"),
+                b0: f32s("mlp.b0"),
+                w1: f32s("mlp.w1"),
+                b1: f32s("mlp.b1"),
+                w2: f32s("mlp.w2"),
+                b2: f32s("mlp.b2"),
+            },
+            provenance: meta.provenance,
+        };
+        asset.validate()?;
+        Ok(asset)
+    }
+
+    /// Checks every index, range and size; run on load and before save.
+    pub fn validate(&self) -> Result<(), AssetError> {
+        if !self.bounds.is_valid() {
+            return Err(invalid(format!("bounds {:?} are not a finite non-empty box", self.bounds)));
+        }
+        let m = &self.march;
+        if !(m.step.is_finite() && m.step > 0.0 && m.step >= self.bounds.size().max_element() / 1e5) {
+            return Err(invalid(format!("march step {} is not a sane positive length", m.step)));
+        }
+        if !(0.0..1.0).contains(&m.alpha_min) {
+            return Err(invalid(format!("alpha_min {} outside [0, 1)", m.alpha_min)));
+        }
+        for (cubes, what, channels) in [(&self.density, "density", 1), (&self.diffuse, "diffuse", 4)] {
+            let b = cubes.grid as usize;
+            if cubes.channels != channels || cubes.index.len() != b * b * b || cubes.bounds != self.bounds {
+                return Err(invalid(format!("{what} cubes have the wrong layout")));
+            }
+            let per_brick = cubes.brick_corners() * channels as usize;
+            if cubes.values.len() % per_brick != 0 {
+                return Err(invalid(format!("{what} values are not whole bricks")));
+            }
+            let n = (cubes.values.len() / per_brick) as i32;
+            let mut seen = vec![false; n as usize];
+            for &i in &cubes.index {
+                if i < -1 || i >= n {
+                    return Err(invalid(format!("{what} index {i} outside -1..{n}")));
+                }
+                if i >= 0 {
+                    if seen[i as usize] {
+                        return Err(invalid(format!("{what} brick {i} referenced twice")));
+                    }
+                    seen[i as usize] = true;
+                }
+            }
+            if cubes.values.iter().any(|v| !v.is_finite()) {
+                return Err(invalid(format!("{what} has non-finite values")));
+            }
+        }
+        if self.density.values.iter().any(|&v| v < 0.0) {
+            return Err(invalid("negative density"));
+        }
+        if self.psh.bounds != self.bounds {
+            return Err(invalid("PSH bounds differ from the asset bounds"));
+        }
+        self.psh.verify().map_err(|e| invalid(e.to_string()))?;
+        if self.mlp.input != self.psh.features as usize + SH_COEFFS + 1 {
+            return Err(invalid("MLP input width does not match the encodings"));
+        }
+        self.mlp.check().map_err(|e| invalid(format!("specular MLP: {e}")))?;
+        Ok(())
+    }
+
+    /// Memory by part, next to what dense grids of the same resolution would need.
+    pub fn memory(&self) -> MemoryReport {
+        let d = &self.density;
+        let c = &self.diffuse;
+        let p = &self.psh;
+        let mlp = self.mlp.parameter_count() as u64 * 4;
+        MemoryReport {
+            parts: vec![
+                MemoryPart {
+                    part: "density cubes",
+                    detail: format!("{}³ index × {}³ bricks, {} of {} cells", d.grid, d.brick, d.brick_count(), d.grid.pow(3)),
+                    stored_bytes: d.stored_bytes(),
+                    dense_bytes: d.dense_bytes(),
+                },
+                MemoryPart {
+                    part: "diffuse cubes",
+                    detail: format!("{}³ index × {}³ bricks, {} of {} cells", c.grid, c.brick, c.brick_count(), c.grid.pow(3)),
+                    stored_bytes: c.stored_bytes(),
+                    dense_bytes: c.dense_bytes(),
+                },
+                MemoryPart {
+                    part: "PSH table",
+                    detail: format!("N={} F={}, {} vertices in {}³ slots", p.grid, p.features, p.len(), p.table_edge),
+                    stored_bytes: p.stored_bytes(),
+                    dense_bytes: p.dense_bytes(),
+                },
+                MemoryPart {
+                    part: "networks",
+                    detail: format!("specular MLP {}→{HIDDEN}→{HIDDEN}→4", self.mlp.input),
+                    stored_bytes: mlp,
+                    dense_bytes: mlp,
+                },
+            ],
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct MemoryPart {
+    pub part: &'static str,
+    pub detail: String,
+    pub stored_bytes: u64,
+    pub dense_bytes: u64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct MemoryReport {
+    pub parts: Vec<MemoryPart>,
+}
+
+fn mib(b: u64) -> f64 {
+    b as f64 / (1024.0 * 1024.0)
+}
+
+impl fmt::Display for MemoryReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "{:<14} {:>11} {:>11} {:>7}  detail", "part", "stored MiB", "dense MiB", "ratio")?;
+        let (mut s, mut d) = (0, 0);
+        for p in &self.parts {
+            writeln!(
+                f,
+                "{:<14} {:>11.3} {:>11.3} {:>6.1}%  {}",
+                p.part,
+                mib(p.stored_bytes),
+                mib(p.dense_bytes),
+                100.0 * p.stored_bytes as f64 / p.dense_bytes.max(1) as f64,
+                p.detail
+            )?;
+            s += p.stored_bytes;
+            d += p.dense_bytes;
+        }
+        writeln!(f, "{:<14} {:>11.3} {:>11.3} {:>6.1}%", "total", mib(s), mib(d), 100.0 * s as f64 / d.max(1) as f64)
+    }
+}

@@ -1,0 +1,206 @@
+//! Sparse texture cubes (NEPHELE §4.1): a coarse `b³` index grid over the object's box; each
+//! occupied cell points to a brick of `r³` fine cells whose `(r+1)³` corner samples are stored,
+//! so trilinear filtering never reads across bricks. Used for density (1 channel) and for the
+//! baked diffuse colour + specular tint (4 channels). Empty cells read as zero.
+//!
+//! Values are stored as f16 in assets and in the GPU atlas (hardware-filterable); here they are
+//! kept as the same f16-rounded values in f32 so the CPU reference sees exactly what the GPU sees.
+
+use glam::{UVec3, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// Axis-aligned box in object space.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Aabb {
+    pub min: Vec3,
+    pub max: Vec3,
+}
+
+impl Aabb {
+    pub fn cube(half_extent: f32) -> Self {
+        Self { min: Vec3::splat(-half_extent), max: Vec3::splat(half_extent) }
+    }
+    pub fn size(&self) -> Vec3 {
+        self.max - self.min
+    }
+    pub fn center(&self) -> Vec3 {
+        0.5 * (self.min + self.max)
+    }
+    pub fn radius(&self) -> f32 {
+        0.5 * self.size().length()
+    }
+    pub fn is_valid(&self) -> bool {
+        self.min.is_finite() && self.max.is_finite() && self.size().min_element() > 0.0 && self.size().max_element() < 1e6
+    }
+}
+
+/// Sparse bricked grid with `channels` values per corner sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TextureCubes {
+    pub bounds: Aabb,
+    /// Index grid cells per axis (`b`).
+    pub grid: u32,
+    /// Fine cells per brick edge (`r`); a brick stores `(r+1)³` corners.
+    pub brick: u32,
+    pub channels: u32,
+    /// `b³` entries, x fastest; brick number or −1 for empty.
+    pub index: Vec<i32>,
+    /// `n_bricks × (r+1)³ × channels`, corner x fastest, channels innermost.
+    pub values: Vec<f32>,
+}
+
+impl TextureCubes {
+    pub fn brick_corners(&self) -> usize {
+        let e = self.brick as usize + 1;
+        e * e * e
+    }
+    pub fn brick_count(&self) -> usize {
+        self.values.len() / (self.brick_corners() * self.channels as usize).max(1)
+    }
+    /// Fine grid resolution per axis (`b·r`).
+    pub fn fine_res(&self) -> u32 {
+        self.grid * self.brick
+    }
+    /// Object-space point → fine-grid coordinates.
+    pub fn to_fine(&self, p: Vec3) -> Vec3 {
+        (p - self.bounds.min) / self.bounds.size() * self.fine_res() as f32
+    }
+    pub fn cell_index(&self, cell: UVec3) -> usize {
+        let b = self.grid as usize;
+        cell.x as usize + b * (cell.y as usize + b * cell.z as usize)
+    }
+    pub fn brick_at(&self, cell: UVec3) -> i32 {
+        self.index[self.cell_index(cell)]
+    }
+
+    /// Trilinear lookup at an object-space point; zero in empty cells and outside the box
+    /// (clamped to the border cell, as the GPU kernel does).
+    pub fn sample<const C: usize>(&self, p: Vec3) -> [f32; C] {
+        debug_assert_eq!(C, self.channels as usize);
+        let r = self.brick as f32;
+        let g = self.to_fine(p);
+        let cell = (g / r).floor().clamp(Vec3::ZERO, Vec3::splat(self.grid as f32 - 1.0));
+        let u = (g - cell * r).clamp(Vec3::ZERO, Vec3::splat(r));
+        let brick = self.brick_at(cell.as_uvec3());
+        if brick < 0 {
+            return [0.0; C];
+        }
+        let base = u.floor().min(Vec3::splat(r - 1.0));
+        let f = u - base;
+        let base = base.as_uvec3();
+        let e = self.brick as usize + 1;
+        let brick_start = brick as usize * self.brick_corners();
+        let mut out = [0.0; C];
+        for corner in 0..8u32 {
+            let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+            let w = if dx == 1 { f.x } else { 1.0 - f.x } * if dy == 1 { f.y } else { 1.0 - f.y } * if dz == 1 { f.z } else { 1.0 - f.z };
+            let (x, y, z) = ((base.x + dx) as usize, (base.y + dy) as usize, (base.z + dz) as usize);
+            let at = (brick_start + x + e * (y + e * z)) * C;
+            for (c, o) in out.iter_mut().enumerate() {
+                *o += w * self.values[at + c];
+            }
+        }
+        out
+    }
+
+    /// Builds cubes by evaluating `value` at the corners of every cell `occupied` accepts.
+    /// `value(p, out)` writes `channels` values for object-space point `p`. Values are rounded
+    /// to f16 as they would be stored.
+    pub fn bake(
+        bounds: Aabb,
+        grid: u32,
+        brick: u32,
+        channels: u32,
+        occupied: impl Fn(UVec3) -> bool + Sync,
+        value: impl Fn(Vec3, &mut [f32]) + Sync,
+    ) -> Self {
+        use rayon::prelude::*;
+        let b = grid as usize;
+        let cells: Vec<bool> = (0..b * b * b)
+            .into_par_iter()
+            .map(|i| occupied(UVec3::new((i % b) as u32, ((i / b) % b) as u32, (i / (b * b)) as u32)))
+            .collect();
+        let mut index = vec![-1i32; b * b * b];
+        let mut n = 0;
+        for (i, &occ) in cells.iter().enumerate() {
+            if occ {
+                index[i] = n;
+                n += 1;
+            }
+        }
+        let e = brick as usize + 1;
+        let per_brick = e * e * e * channels as usize;
+        let mut values = vec![0.0f32; n as usize * per_brick];
+        let fine = Vec3::splat((grid * brick) as f32);
+        let occupied_cells: Vec<usize> = (0..b * b * b).filter(|&i| cells[i]).collect();
+        values.par_chunks_mut(per_brick).zip(occupied_cells.par_iter()).for_each(|(dst, &i)| {
+            let cell = Vec3::new((i % b) as f32, ((i / b) % b) as f32, (i / (b * b)) as f32);
+            for z in 0..e {
+                for y in 0..e {
+                    for x in 0..e {
+                        let g = cell * brick as f32 + Vec3::new(x as f32, y as f32, z as f32);
+                        let p = bounds.min + g / fine * bounds.size();
+                        let at = (x + e * (y + e * z)) * channels as usize;
+                        let out = &mut dst[at..at + channels as usize];
+                        value(p, out);
+                        for v in out.iter_mut() {
+                            *v = half::f16::from_f32(*v).to_f32();
+                        }
+                    }
+                }
+            }
+        });
+        Self { bounds, grid, brick, channels, index, values }
+    }
+
+    /// Bytes as stored (index i32 + f16 values).
+    pub fn stored_bytes(&self) -> u64 {
+        self.index.len() as u64 * 4 + self.values.len() as u64 * 2
+    }
+    /// Bytes a dense f16 grid of the same fine resolution would take.
+    pub fn dense_bytes(&self) -> u64 {
+        (self.fine_res() as u64 + 1).pow(3) * self.channels as u64 * 2
+    }
+}
+
+/// How bricks are packed into a 3D texture atlas: bricks per axis.
+pub fn atlas_bricks_per_axis(brick_count: usize, brick_edge_texels: u32, max_dim: u32) -> Option<UVec3> {
+    let per_axis_max = (max_dim / brick_edge_texels).max(1);
+    let n = brick_count.max(1) as u32;
+    let nx = ((n as f64).cbrt().ceil() as u32).clamp(1, per_axis_max);
+    let ny = n.div_ceil(nx).min(nx).max(1);
+    let nz = n.div_ceil(nx * ny);
+    (nz <= per_axis_max).then_some(UVec3::new(nx, ny, nz))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn linear_cubes() -> TextureCubes {
+        // A linear field is reproduced exactly by trilinear filtering.
+        TextureCubes::bake(Aabb::cube(1.0), 4, 4, 1, |c| c.x != 0, |p, out| out[0] = 2.0 + p.x + 0.5 * p.y - 0.25 * p.z)
+    }
+
+    #[test]
+    fn trilinear_reproduces_linear_fields_and_empty_cells_read_zero() {
+        let cubes = linear_cubes();
+        assert_eq!(cubes.brick_count(), 48);
+        for p in [Vec3::new(0.3, -0.2, 0.7), Vec3::new(-0.49, 0.99, -0.99), Vec3::new(0.999, 0.0, 0.0)] {
+            let want = 2.0 + p.x + 0.5 * p.y - 0.25 * p.z;
+            let got = cubes.sample::<1>(p)[0];
+            assert!((got - want).abs() < 4e-3, "{p}: {got} vs {want}");
+        }
+        // Cells with x index 0 (x < -0.5) are empty.
+        assert_eq!(cubes.sample::<1>(Vec3::new(-0.8, 0.1, 0.1)), [0.0]);
+    }
+
+    #[test]
+    fn atlas_layout_fits() {
+        for n in [0usize, 1, 2, 7, 8, 9, 1000, 12345] {
+            let a = atlas_bricks_per_axis(n, 9, 2048).unwrap();
+            assert!((a.x * a.y * a.z) as usize >= n.max(1), "{n}: {a}");
+        }
+        assert!(atlas_bricks_per_axis(1 << 30, 9, 2048).is_none());
+    }
+}

@@ -1,0 +1,130 @@
+// march.wgsl — i-NOLF pass 1 (DESIGN §3 steps 1–3): clip each pixel's ray to the box, DDA over
+// the density index grid, fixed-step samples of the density atlas (hardware trilinear), the
+// max-weight hit and coarse opacity with the exact early stop. Misses get the background;
+// hits are appended to `hits` for the shading pass. Mirrors `model::march`.
+
+fn density_at(p: vec3<f32>) -> f32 {
+    let r = f32(params.density_brick);
+    let g = (p - params.bounds_min) / params.bounds_size * f32(params.density_grid * params.density_brick);
+    let cell = clamp(floor(g / r), vec3<f32>(0.0), vec3<f32>(f32(params.density_grid) - 1.0));
+    let u = clamp(g - cell * r, vec3<f32>(0.0), vec3<f32>(r));
+    let c = vec3<u32>(cell);
+    let b = params.density_grid;
+    let brick = bitcast<i32>(asset[params.off_density_index + c.x + b * (c.y + b * c.z)]);
+    if brick < 0 { return 0.0; }
+    let coord = atlas_coord(u32(brick), u, r, params.density_atlas_bricks, params.density_atlas_size);
+    return textureSampleLevel(density_atlas, atlas_sampler, coord, 0.0).r;
+}
+
+fn occupied(cell: vec3<i32>) -> bool {
+    let b = i32(params.density_grid);
+    return bitcast<i32>(asset[params.off_density_index + u32(cell.x + b * (cell.y + b * cell.z))]) >= 0;
+}
+
+struct March {
+    t_hit: f32,
+    alpha_c: f32,
+}
+
+fn march(o_in: vec3<f32>, d_in: vec3<f32>) -> March {
+    var o = o_in;
+    var d = d_in;
+    var res = March(0.0, 0.0);
+    let bmin = params.bounds_min;
+    let bmax = params.bounds_min + params.bounds_size;
+    var t_near = -BIG;
+    var t_far = BIG;
+    for (var a = 0; a < 3; a++) {
+        if abs(d[a]) < TINY_DIR {
+            if o[a] < bmin[a] || o[a] > bmax[a] { return res; }
+        } else {
+            let ta = (bmin[a] - o[a]) / d[a];
+            let tb = (bmax[a] - o[a]) / d[a];
+            t_near = max(t_near, min(ta, tb));
+            t_far = min(t_far, max(ta, tb));
+        }
+    }
+    let t0 = max(t_near, 0.0);
+    let t1 = t_far;
+    if !(t1 > t0) { return res; }
+
+    let step = params.step;
+    let b = i32(params.density_grid);
+    let cell_size = params.bounds_size / f32(b);
+    let p0 = o + t0 * d;
+    var cell = clamp(vec3<i32>(floor((p0 - bmin) / cell_size)), vec3<i32>(0), vec3<i32>(b - 1));
+    var dir_step = vec3<i32>(0);
+    var t_max = vec3<f32>(BIG);
+    var t_delta = vec3<f32>(BIG);
+    for (var a = 0; a < 3; a++) {
+        if abs(d[a]) >= TINY_DIR {
+            dir_step[a] = select(-1, 1, d[a] > 0.0);
+            let boundary = bmin[a] + f32(cell[a] + select(0, 1, d[a] > 0.0)) * cell_size[a];
+            t_max[a] = t0 + (boundary - p0[a]) / d[a];
+            t_delta[a] = cell_size[a] / abs(d[a]);
+        }
+    }
+    var transmittance = 1.0;
+    var w_max = 0.0;
+    var t_hit = 0.0;
+    var t_enter = t0;
+    var k_next = 0;
+    var done = false;
+    for (var it = 0; it < 3 * b + 3; it++) {
+        if done || t_enter >= t1 { break; }
+        let t_exit = min(min(min(t_max.x, t_max.y), t_max.z), t1);
+        if occupied(cell) {
+            let k_a = max(k_next, i32(ceil((t_enter - t0) / step - 0.5)));
+            let k_b = i32(ceil((t_exit - t0) / step - 0.5));
+            for (var k = k_a; k < k_b; k++) {
+                let t = t0 + (f32(k) + 0.5) * step;
+                let sigma = density_at(o + t * d);
+                let alpha = 1.0 - exp(-sigma * step);
+                let w = transmittance * alpha;
+                if w > w_max {
+                    w_max = w;
+                    t_hit = t;
+                }
+                transmittance *= 1.0 - alpha;
+                if transmittance < params.stop_ratio * w_max || transmittance < params.early_stop {
+                    done = true;
+                    break;
+                }
+            }
+            k_next = max(k_next, k_b);
+        }
+        var axis = 2;
+        if t_max.x <= t_max.y && t_max.x <= t_max.z { axis = 0; } else if t_max.y <= t_max.z { axis = 1; }
+        cell[axis] += dir_step[axis];
+        if cell[axis] < 0 || cell[axis] >= b { break; }
+        t_enter = t_exit;
+        t_max[axis] += t_delta[axis];
+    }
+    res.t_hit = t_hit;
+    res.alpha_c = 1.0 - transmittance;
+    return res;
+}
+
+@compute @workgroup_size(64)
+fn march_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let local = linear_id(gid, nwg);
+    if local >= params.chunk_len { return; }
+    let vi = find_view(params.chunk_start + local);
+    let ray = ray_of_pixel(local, vi);
+    let m = march(ray.o, ray.d);
+    if m.alpha_c < params.alpha_min {
+        out_pixels[local] = vec2<u32>(pack4x8unorm(vec4<f32>(views[vi].background, 0.0)), bitcast<u32>(-1.0));
+        return;
+    }
+    let slot = atomicAdd(&counter.hits, 1u);
+    hits[slot] = Hit(local, vi, m.t_hit, m.alpha_c);
+}
+
+// One thread: turn the hit count into an indirect dispatch for the shading pass.
+@compute @workgroup_size(1)
+fn args_main() {
+    let groups = (atomicLoad(&counter.hits) + 63u) / 64u;
+    dispatch_args[0] = min(groups, 65535u);
+    dispatch_args[1] = max((groups + 65534u) / 65535u, 1u);
+    dispatch_args[2] = 1u;
+}

@@ -1,0 +1,19 @@
+//! Nephele renderer: the i-NOLF model of NEPHELE (Luo et al., arXiv 2303.04086) — asset
+//! format, camera and ray maths, a plain CPU reference and a wgpu compute backend that agree
+//! on DESIGN §3, and procedural assets. No tokio, no network.
+
+pub mod asset;
+pub mod camera;
+pub mod cubes;
+pub mod gpu;
+pub mod mlp;
+pub mod model;
+pub mod procedural;
+pub mod psh;
+pub mod render;
+pub mod sh;
+
+pub use asset::{Asset, AssetError};
+pub use camera::{Instance, Intrinsics, PoseError, View};
+pub use model::RenderSettings;
+pub use render::{Backend, CpuBackend, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest};

@@ -1,0 +1,230 @@
+//! The renderer interface shared by both backends: a batch of views (cameras of any sizes,
+//! each with the asset's instance transform and a background colour) in, one RGBA8 + depth
+//! frame per view out, with the time spent marching and shading.
+
+use std::{path::Path, sync::Arc, time::Instant};
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::{
+    asset::Asset,
+    camera::{Instance, PoseError, RayFrame, View},
+    model::{self, RenderSettings},
+};
+
+/// One camera of a batch.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewRequest {
+    pub view: View,
+    /// Where the asset sits in the scene.
+    pub instance: Instance,
+    /// Linear RGB in [0, 1] behind the object (AR uses pure green).
+    pub background: Vec3,
+}
+
+impl ViewRequest {
+    pub fn new(view: View) -> Self {
+        Self { view, instance: Instance::default(), background: Vec3::ONE }
+    }
+    pub fn with_background(mut self, bg: Vec3) -> Self {
+        self.background = bg;
+        self
+    }
+}
+
+/// A rendered view: RGBA8 (alpha = object opacity) and depth in scene units (∞ for misses).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub rgba: Vec<u8>,
+    pub depth: Vec<f32>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("view {index}: {source}")]
+    BadView { index: usize, source: PoseError },
+    #[error("{0}")]
+    BadSettings(String),
+    #[error("no views to render")]
+    NoViews,
+    #[error("GPU error: {0}")]
+    Gpu(String),
+    #[error("cannot write {path}: {message}")]
+    Output { path: String, message: String },
+}
+
+/// Where the time of one batch went.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct RenderStats {
+    pub march_ms: f64,
+    pub shade_ms: f64,
+    pub total_ms: f64,
+    pub rays: u64,
+    pub hits: u64,
+    /// Density samples taken (CPU backend only; 0 where not counted).
+    pub samples: u64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderOutput {
+    pub frames: Vec<Frame>,
+    pub stats: RenderStats,
+}
+
+/// An asset made ready for one backend (uploaded, for the GPU).
+pub trait PreparedAsset: Send + Sync {
+    fn asset(&self) -> &Arc<Asset>;
+    fn render(&self, views: &[ViewRequest], settings: &RenderSettings) -> Result<RenderOutput, RenderError>;
+}
+
+pub trait Backend: Send + Sync {
+    /// Human-readable name, e.g. "cpu" or the adapter's.
+    fn name(&self) -> String;
+    fn prepare(&self, asset: Arc<Asset>) -> Result<Box<dyn PreparedAsset>, RenderError>;
+}
+
+/// Validation shared by both backends: nothing reaches a kernel unchecked.
+pub fn check_request(views: &[ViewRequest], settings: &RenderSettings) -> Result<(), RenderError> {
+    settings.validate().map_err(RenderError::BadSettings)?;
+    if views.is_empty() {
+        return Err(RenderError::NoViews);
+    }
+    for (index, v) in views.iter().enumerate() {
+        v.view.validate().and_then(|_| v.instance.validate()).map_err(|source| RenderError::BadView { index, source })?;
+        if !v.background.is_finite() {
+            return Err(RenderError::BadSettings(format!("view {index}: background is not finite")));
+        }
+    }
+    Ok(())
+}
+
+pub fn to_unorm8(x: f32) -> u8 {
+    (x.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+impl Frame {
+    pub fn pixel(&self, x: u32, y: u32) -> [u8; 4] {
+        let i = 4 * (y * self.width + x) as usize;
+        self.rgba[i..i + 4].try_into().unwrap()
+    }
+
+    /// Fraction of pixels hit (alpha > 0).
+    pub fn coverage(&self) -> f64 {
+        self.depth.iter().filter(|d| d.is_finite()).count() as f64 / self.depth.len().max(1) as f64
+    }
+
+    fn write_png(path: &Path, width: u32, height: u32, color: png::ColorType, data: &[u8]) -> Result<(), RenderError> {
+        let err = |e: &dyn std::fmt::Display| RenderError::Output { path: path.display().to_string(), message: e.to_string() };
+        let file = std::fs::File::create(path).map_err(|e| err(&e))?;
+        let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
+        enc.set_color(color);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.write_header().and_then(|mut w| w.write_image_data(data)).map_err(|e| err(&e))
+    }
+
+    /// Colour as RGB PNG (the background is already composited).
+    pub fn save_png(&self, path: &Path) -> Result<(), RenderError> {
+        let rgb: Vec<u8> = self.rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+        Self::write_png(path, self.width, self.height, png::ColorType::Rgb, &rgb)
+    }
+
+    pub fn save_alpha_png(&self, path: &Path) -> Result<(), RenderError> {
+        let a: Vec<u8> = self.rgba.chunks_exact(4).map(|p| p[3]).collect();
+        Self::write_png(path, self.width, self.height, png::ColorType::Grayscale, &a)
+    }
+
+    /// Depth as grey (near = white, far = dark, miss = black), normalised to the hit range.
+    pub fn save_depth_png(&self, path: &Path) -> Result<(), RenderError> {
+        let hits = self.depth.iter().copied().filter(|d| d.is_finite());
+        let (lo, hi) = hits.fold((f32::MAX, f32::MIN), |(a, b), d| (a.min(d), b.max(d)));
+        let span = (hi - lo).max(1e-6);
+        let g: Vec<u8> = self
+            .depth
+            .iter()
+            .map(|&d| if d.is_finite() { to_unorm8(1.0 - 0.8 * (d - lo) / span) } else { 0 })
+            .collect();
+        Self::write_png(path, self.width, self.height, png::ColorType::Grayscale, &g)
+    }
+}
+
+/// The plain CPU reference renderer (rayon over rows).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct CpuBackend;
+
+struct CpuPrepared(Arc<Asset>);
+
+impl Backend for CpuBackend {
+    fn name(&self) -> String {
+        "cpu".into()
+    }
+    fn prepare(&self, asset: Arc<Asset>) -> Result<Box<dyn PreparedAsset>, RenderError> {
+        Ok(Box::new(CpuPrepared(asset)))
+    }
+}
+
+impl PreparedAsset for CpuPrepared {
+    fn asset(&self) -> &Arc<Asset> {
+        &self.0
+    }
+
+    fn render(&self, views: &[ViewRequest], settings: &RenderSettings) -> Result<RenderOutput, RenderError> {
+        check_request(views, settings)?;
+        let asset = &*self.0;
+        let step = asset.march.step * settings.step_scale;
+        let alpha_min = settings.alpha_min.unwrap_or(asset.march.alpha_min);
+        let start = Instant::now();
+        let frames_setup: Vec<RayFrame> =
+            views.iter().map(|v| RayFrame::new(&v.view, &v.instance, asset.bounds.center(), asset.bounds.radius())).collect();
+        // Pass 1: march every ray.
+        let marches: Vec<Vec<model::MarchHit>> = frames_setup
+            .iter()
+            .map(|f| {
+                let (w, h) = (f.intrinsics.width, f.intrinsics.height);
+                (0..w * h)
+                    .into_par_iter()
+                    .map(|i| {
+                        let (o, d) = f.ray(i % w, i / w);
+                        model::march(&asset.density, o, d, step, settings)
+                    })
+                    .collect()
+            })
+            .collect();
+        let march_done = Instant::now();
+        // Pass 2: shade the hits; misses get the background and infinite depth.
+        let mut stats = RenderStats::default();
+        let mut frames = Vec::with_capacity(views.len());
+        for ((req, f), marched) in views.iter().zip(&frames_setup).zip(&marches) {
+            let w = f.intrinsics.width;
+            let shaded: Vec<([u8; 4], f32)> = marched
+                .par_iter()
+                .enumerate()
+                .map(|(i, m)| {
+                    if m.alpha_c < alpha_min {
+                        let bg = req.background;
+                        return ([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY);
+                    }
+                    let (o, d) = f.ray(i as u32 % w, i as u32 / w);
+                    let (rgb, a) = model::shade(asset, o + m.t_hit * d, d, m.alpha_c, req.background);
+                    ([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale)
+                })
+                .collect();
+            stats.rays += marched.len() as u64;
+            stats.hits += shaded.iter().filter(|s| s.1.is_finite()).count() as u64;
+            stats.samples += marched.iter().map(|m| m.samples as u64).sum::<u64>();
+            frames.push(Frame {
+                width: w,
+                height: f.intrinsics.height,
+                rgba: shaded.iter().flat_map(|s| s.0).collect(),
+                depth: shaded.iter().map(|s| s.1).collect(),
+            });
+        }
+        let end = Instant::now();
+        stats.march_ms = (march_done - start).as_secs_f64() * 1e3;
+        stats.shade_ms = (end - march_done).as_secs_f64() * 1e3;
+        stats.total_ms = (end - start).as_secs_f64() * 1e3;
+        Ok(RenderOutput { frames, stats })
+    }
+}

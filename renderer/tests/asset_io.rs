@@ -1,0 +1,127 @@
+//! The .nolf container: round trip, and every truncation, bit flip, wrong version or hostile
+//! size field is a clear error — never a panic or a huge allocation.
+
+mod common;
+
+use nephele_renderer::{
+    Asset, AssetError,
+    procedural::{self, ProceduralConfig, Scene},
+};
+use rand::{Rng, SeedableRng, rngs::SmallRng};
+
+fn tiny() -> Asset {
+    let cfg = ProceduralConfig { density_grid: 8, density_brick: 2, diffuse_grid: 8, diffuse_brick: 2, psh_grid: 16, ..ProceduralConfig::small(Scene::Shiny) };
+    procedural::generate(&cfg).unwrap()
+}
+
+#[test]
+fn round_trip_is_exact() {
+    let a = tiny();
+    let bytes = a.to_bytes().unwrap();
+    let b = Asset::from_bytes(&bytes).unwrap();
+    assert_eq!(a, b);
+    // And through a file.
+    let path = std::env::temp_dir().join(format!("nephele-rt-{}.nolf", std::process::id()));
+    a.save(&path).unwrap();
+    assert_eq!(Asset::load(&path).unwrap(), a);
+    std::fs::remove_file(path).ok();
+}
+
+#[test]
+fn shipped_fixture_matches_the_generator() {
+    let shipped = common::fixture();
+    let fresh = procedural::generate(&ProceduralConfig::small(Scene::Trio)).unwrap();
+    assert!(*shipped == fresh, "examples/assets/trio-small.nolf is stale: regenerate with `nephele generate --scene trio --small --out examples/assets/trio-small.nolf`");
+}
+
+#[test]
+fn every_truncation_is_an_error() {
+    let bytes = tiny().to_bytes().unwrap();
+    for len in 0..bytes.len() {
+        let r = std::panic::catch_unwind(|| Asset::from_bytes(&bytes[..len]));
+        match r {
+            Ok(Err(_)) => {}
+            Ok(Ok(_)) => panic!("truncated to {len} bytes but loaded"),
+            Err(_) => panic!("truncated to {len} bytes: panic"),
+        }
+    }
+}
+
+#[test]
+fn random_bit_flips_are_errors() {
+    let bytes = tiny().to_bytes().unwrap();
+    let mut rng = SmallRng::seed_from_u64(5);
+    // Every byte of the header, and random bytes of the data.
+    let header_len = 8 + u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let positions: Vec<usize> = (0..header_len).chain((0..3000).map(|_| rng.random_range(header_len..bytes.len()))).collect();
+    for pos in positions {
+        let mut b = bytes.clone();
+        b[pos] ^= 1 << rng.random_range(0..8);
+        match std::panic::catch_unwind(|| Asset::from_bytes(&b)) {
+            Ok(Err(_)) => {}
+            Ok(Ok(_)) => panic!("flip at byte {pos} loaded silently"),
+            Err(_) => panic!("flip at byte {pos}: panic"),
+        }
+    }
+}
+
+/// Rewrites the `nolf` metadata JSON (fixing its checksum) to forge hostile files.
+fn forge(bytes: &[u8], edit: impl Fn(&mut serde_json::Value)) -> Vec<u8> {
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    let meta_str = header["__metadata__"]["nolf"].as_str().unwrap().to_string();
+    let mut meta: serde_json::Value = serde_json::from_str(&meta_str).unwrap();
+    edit(&mut meta);
+    let new_meta = serde_json::to_string(&meta).unwrap();
+    use sha2::Digest;
+    let sha: String = sha2::Sha256::digest(new_meta.as_bytes()).iter().map(|b| format!("{b:02x}")).collect();
+    header["__metadata__"]["nolf"] = new_meta.into();
+    header["__metadata__"]["nolf_sha256"] = sha.into();
+    let mut h = serde_json::to_vec(&header).unwrap();
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend(h);
+    out.extend_from_slice(&bytes[8 + n..]);
+    out
+}
+
+#[test]
+fn wrong_version_and_hostile_sizes_are_clear_errors() {
+    let bytes = tiny().to_bytes().unwrap();
+    assert!(Asset::from_bytes(&forge(&bytes, |_| {})).is_ok(), "forging itself must be faithful");
+    let err = Asset::from_bytes(&forge(&bytes, |m| m["version"] = 99.into())).unwrap_err();
+    assert!(matches!(err, AssetError::Version { version: 99, .. }), "{err}");
+    assert!(err.to_string().contains("version 99"));
+    for (field, value) in [
+        (("density", "grid"), 4_000_000_000u64),
+        (("density", "bricks"), 4_000_000_000),
+        (("psh", "table_edge"), 100_000),
+        (("psh", "features"), 1_000_000),
+        (("diffuse", "brick"), 0),
+    ] {
+        let forged = forge(&bytes, |m| m[field.0][field.1] = value.into());
+        let err = Asset::from_bytes(&forged).unwrap_err();
+        eprintln!("{}.{} = {value}: {err}", field.0, field.1);
+    }
+    // A plausible but wrong size is a shape mismatch, not a misread.
+    let err = Asset::from_bytes(&forge(&bytes, |m| m["density"]["bricks"] = 3.into())).unwrap_err();
+    assert!(matches!(err, AssetError::Shape { name: "density.values", .. }), "{err}");
+    let err = Asset::from_bytes(b"definitely not an asset").unwrap_err();
+    assert!(matches!(err, AssetError::Container(_)), "{err}");
+    let err = Asset::load(std::path::Path::new("/nonexistent/x.nolf")).unwrap_err();
+    assert!(err.to_string().contains("/nonexistent/x.nolf"));
+}
+
+#[test]
+fn memory_report_compares_with_dense_grids() {
+    let a = common::fixture();
+    let m = a.memory();
+    assert_eq!(m.parts.len(), 4);
+    for p in &m.parts[..3] {
+        assert!(p.stored_bytes < p.dense_bytes, "{}: sparse {} ≥ dense {}", p.part, p.stored_bytes, p.dense_bytes);
+    }
+    let text = m.to_string();
+    assert!(text.contains("density cubes") && text.contains("PSH table") && text.contains("total"));
+}

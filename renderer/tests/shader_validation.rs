@@ -1,0 +1,21 @@
+//! Every WGSL kernel parses and validates with naga (no GPU needed), and the Rust mirrors of
+//! its structs have the sizes naga computes.
+
+use nephele_renderer::gpu::{GpuView, Params, kernel_sources};
+
+#[test]
+fn kernels_validate_and_structs_match() {
+    for (name, src) in kernel_sources() {
+        let module = naga::front::wgsl::parse_str(&src).unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&src)));
+        let mut validator = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
+        let info = validator.validate(&module).unwrap_or_else(|e| panic!("{name}: {e:?}"));
+        drop(info);
+        let size_of = |ty: &str| {
+            let (h, _) = module.types.iter().find(|(_, t)| t.name.as_deref() == Some(ty)).unwrap();
+            module.types[h].inner.size(module.to_ctx())
+        };
+        assert_eq!(size_of("Params") as usize, std::mem::size_of::<Params>(), "{name}: Params");
+        assert_eq!(size_of("View") as usize, std::mem::size_of::<GpuView>(), "{name}: View");
+        assert_eq!(size_of("Hit"), 16, "{name}: Hit");
+    }
+}

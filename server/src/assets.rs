@@ -1,0 +1,80 @@
+//! Where assets and backends come from: a `.nolf` path or a built-in procedural scene
+//! (`builtin:trio`, `builtin:shiny`, ...), and the backend choice with a loud CPU fallback.
+
+use std::{path::Path, sync::Arc};
+
+use anyhow::{Context, Result, bail};
+use nephele_renderer::{
+    Asset, Backend, CpuBackend,
+    gpu::GpuBackend,
+    procedural::{self, ProceduralConfig, Scene},
+};
+
+/// The scene served when none is named.
+pub const DEFAULT_ASSET: &str = "builtin:trio";
+
+/// Loads `spec`: `builtin:<scene>[-small]` or a path to a `.nolf` file.
+pub fn load_asset(spec: &str) -> Result<Arc<Asset>> {
+    if let Some(name) = spec.strip_prefix("builtin:") {
+        let (name, small) = match name.strip_suffix("-small") {
+            Some(n) => (n, true),
+            None => (name, false),
+        };
+        let scene: Scene = name.parse().map_err(anyhow::Error::msg)?;
+        let cfg = if small { ProceduralConfig::small(scene) } else { ProceduralConfig::default_quality(scene) };
+        let asset = procedural::generate(&cfg).context("building the procedural asset")?;
+        return Ok(Arc::new(asset));
+    }
+    let asset = Asset::load(Path::new(spec)).with_context(|| format!("loading asset {spec}"))?;
+    Ok(Arc::new(asset))
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BackendChoice {
+    /// The GPU if an adapter exists (software lavapipe counts), else the CPU with a warning.
+    Auto,
+    Gpu,
+    Cpu,
+}
+
+pub fn make_backend(choice: BackendChoice) -> Result<Box<dyn Backend>> {
+    match choice {
+        BackendChoice::Cpu => Ok(Box::new(CpuBackend)),
+        BackendChoice::Gpu => Ok(Box::new(GpuBackend::new()?)),
+        BackendChoice::Auto => match GpuBackend::new() {
+            Ok(gpu) => Ok(Box::new(gpu)),
+            Err(e) => {
+                eprintln!("warning: {e}; using the CPU reference renderer (slow)");
+                Ok(Box::new(CpuBackend))
+            }
+        },
+    }
+}
+
+/// Parses "W" "x" "H".
+pub fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s.split_once(['x', 'X']).with_context(|| format!("size {s:?} should look like 800x600"))?;
+    let (w, h) = (w.trim().parse::<u32>()?, h.trim().parse::<u32>()?);
+    if w == 0 || h == 0 {
+        bail!("size {s:?} has a zero edge");
+    }
+    Ok((w, h))
+}
+
+/// Parses "r,g,b" in 0..=1 or a name (white, black, green).
+pub fn parse_color(s: &str) -> Result<glam::Vec3> {
+    let named = match s {
+        "white" => Some(glam::Vec3::ONE),
+        "black" => Some(glam::Vec3::ZERO),
+        "green" => Some(glam::Vec3::new(0.0, 1.0, 0.0)),
+        _ => None,
+    };
+    if let Some(c) = named {
+        return Ok(c);
+    }
+    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>()).collect::<Result<_, _>>().with_context(|| format!("colour {s:?}"))?;
+    match v[..] {
+        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok(glam::Vec3::new(r, g, b)),
+        _ => bail!("colour {s:?} should be r,g,b in [0, 1] or white/black/green"),
+    }
+}

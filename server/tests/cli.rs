@@ -1,0 +1,68 @@
+//! The `nephele` command line end to end: render, info, generate and bench print and write
+//! what they say, and bad input is a clear error with a non-zero exit.
+
+use std::process::Command;
+
+fn nephele(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_nephele")).args(args).output().expect("runs")
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("nephele-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+#[test]
+fn render_writes_pngs() {
+    let out = tmp("r.png");
+    let depth = tmp("d.png");
+    let o = nephele(&["render", "builtin:trio-small", "--size", "63x47", "--backend", "cpu", "--out", out.to_str().unwrap(), "--depth", depth.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("of rays hit"));
+    let png = std::fs::read(&out).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    assert!(depth.exists());
+}
+
+#[test]
+fn render_from_a_nerf_pose_file() {
+    let pose = tmp("pose.json");
+    // A NeRF-synthetic style camera 4 units out on +y, looking at the origin.
+    std::fs::write(&pose, r#"{"camera_angle_x": 0.69, "transform_matrix": [[-1,0,0,0],[0,0,1,4],[0,1,0,0],[0,0,0,1]]}"#).unwrap();
+    let out = tmp("pose.png");
+    let o = nephele(&["render", "builtin:shiny-small", "--pose", pose.to_str().unwrap(), "--size", "32x32", "--backend", "cpu", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("no ray hit"));
+}
+
+#[test]
+fn generate_info_and_bench_print_tables() {
+    let asset = tmp("g.nolf");
+    let o = nephele(&["generate", "--scene", "diffuse", "--small", "--out", asset.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = nephele(&["info", asset.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("density cubes") && text.contains("dense MiB"), "{text}");
+    let o = nephele(&["bench", "render", "--asset", asset.to_str().unwrap(), "--sizes", "32x32,17x9", "--backends", "cpu", "--runs", "1"]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("| cpu | 32×32 |") && text.contains("| cpu | 17×9 |"), "{text}");
+}
+
+#[test]
+fn bad_input_is_a_clear_error() {
+    for (args, words) in [
+        (vec!["render", "/nonexistent.nolf"], "nonexistent.nolf"),
+        (vec!["render", "builtin:teapot"], "unknown procedural scene"),
+        (vec!["render", "builtin:trio-small", "--size", "100000x10", "--backend", "cpu"], "outside"),
+        (vec!["render", "builtin:trio-small", "--size", "ax3"], "invalid digit"),
+        (vec!["render", "builtin:trio-small", "--background", "purple"], "colour"),
+    ] {
+        let o = nephele(&args);
+        assert!(!o.status.success(), "{args:?} should fail");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(words), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    }
+}

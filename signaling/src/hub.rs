@@ -1,0 +1,1129 @@
+//! The signaling hub: a sans-IO state machine that pairs clients with masters and
+//! routes SDP/ICE between them.
+//!
+//! Inputs are connection events and text frames with the current time passed in;
+//! outputs are [`Outgoing`] messages addressed by [`ConnId`]. The hub never touches
+//! sockets, clocks or tasks (see `server.rs` for the IO edge), so tests drive it on
+//! simulated time.
+//!
+//! Pairing: a join goes to the master with room (`sessions < capacity`) and the least
+//! load (`sessions / capacity`, ties broken by id). Each master's session count is
+//! kept by the hub (join +1; leave, end, reject, disconnect -1) and overwritten by the
+//! master's own count whenever a heartbeat arrives.
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::protocol::{ErrorCode, Mode, ToClient, ToMaster, ToPeer, ToSignal};
+
+/// Identifies one websocket connection; chosen by the IO edge.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct ConnId(pub u64);
+
+impl std::fmt::Display for ConnId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "c{}", self.0)
+    }
+}
+
+/// Hub settings.
+#[derive(Clone, Debug)]
+pub struct HubConfig {
+    /// Shared secret that `join` and `register` must carry; `None` disables the check.
+    pub token: Option<String>,
+    /// A master silent for longer than this is dropped and its clients told `master_lost`.
+    pub heartbeat_timeout: Duration,
+    /// Longest accepted text message in bytes; longer ones get `error too_large`.
+    pub max_message_bytes: usize,
+}
+
+impl Default for HubConfig {
+    fn default() -> Self {
+        Self {
+            token: None,
+            heartbeat_timeout: Duration::from_secs(15),
+            max_message_bytes: 64 * 1024,
+        }
+    }
+}
+
+/// One message for the IO edge to deliver.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Outgoing {
+    /// Receiving connection.
+    pub to: ConnId,
+    /// The message (serialize with [`ToPeer::to_json`]).
+    pub msg: ToPeer,
+    /// Close the connection after sending this message.
+    pub close: bool,
+}
+
+impl Outgoing {
+    fn client(to: ConnId, msg: ToClient) -> Self {
+        Self {
+            to,
+            msg: ToPeer::Client(msg),
+            close: false,
+        }
+    }
+    fn master(to: ConnId, msg: ToMaster) -> Self {
+        Self {
+            to,
+            msg: ToPeer::Master(msg),
+            close: false,
+        }
+    }
+}
+
+/// Why a message was refused; becomes an `error` message to its sender only.
+#[derive(Debug, thiserror::Error)]
+pub enum SignalError {
+    /// Not JSON or not a known message type.
+    #[error("not a valid signaling message: {0}")]
+    BadMessage(String),
+    /// Over the size limit.
+    #[error("message is {len_bytes} bytes, the limit is {max_bytes} bytes")]
+    TooLarge { len_bytes: usize, max_bytes: usize },
+    /// Token missing or wrong.
+    #[error("missing or wrong token")]
+    Unauthorized,
+    /// No master registered at all.
+    #[error("no master is registered; try again later")]
+    NoMaster,
+    /// All registered masters are at capacity.
+    #[error("all {0} masters are full; try again later")]
+    AllFull(usize),
+    /// Acceptable syntax, unacceptable content.
+    #[error("{0}")]
+    BadRequest(String),
+    /// Message not allowed for the connection's role.
+    #[error("`{kind}` is not allowed on a {role} connection")]
+    WrongRole {
+        kind: &'static str,
+        role: &'static str,
+    },
+    /// Session message before a successful `join`/`register`.
+    #[error("`{0}` needs a session: send `join` (clients) or `register` (masters) first")]
+    NotJoined(&'static str),
+}
+
+impl SignalError {
+    /// The wire error code.
+    pub fn code(&self) -> ErrorCode {
+        match self {
+            Self::BadMessage(_) => ErrorCode::BadMessage,
+            Self::TooLarge { .. } => ErrorCode::TooLarge,
+            Self::Unauthorized => ErrorCode::Unauthorized,
+            Self::NoMaster | Self::AllFull(_) => ErrorCode::NoCapacity,
+            Self::BadRequest(_) => ErrorCode::BadRequest,
+            Self::WrongRole { .. } => ErrorCode::WrongRole,
+            Self::NotJoined(_) => ErrorCode::NotJoined,
+        }
+    }
+}
+
+/// One master's load, for `/status`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct MasterStats {
+    /// Master id.
+    pub master: String,
+    /// Maximum concurrent sessions.
+    pub capacity: u32,
+    /// Current sessions.
+    pub sessions: u32,
+}
+
+/// Snapshot of the hub, for `/status`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct HubStats {
+    /// Registered masters, ordered by id.
+    pub masters: Vec<MasterStats>,
+    /// Connections in the client role.
+    pub clients: usize,
+    /// Sessions paired with a master.
+    pub sessions: usize,
+}
+
+#[derive(Debug)]
+struct Master {
+    id: String,
+    capacity: u32,
+    sessions: u32,
+    last_seen: Instant,
+}
+
+#[derive(Debug)]
+enum Peer {
+    /// Connected; role not decided yet.
+    Fresh,
+    /// A client, with its session if paired.
+    Client {
+        session: Option<String>,
+    },
+    Master(Master),
+}
+
+#[derive(Debug)]
+struct Session {
+    client: ConnId,
+    master: ConnId,
+}
+
+/// The signaling state machine. See the module docs.
+#[derive(Debug)]
+pub struct Hub {
+    cfg: HubConfig,
+    peers: BTreeMap<ConnId, Peer>,
+    sessions: BTreeMap<String, Session>,
+    next_session: u64,
+}
+
+type Res = Result<Vec<Outgoing>, SignalError>;
+
+impl Hub {
+    /// An empty hub.
+    pub fn new(cfg: HubConfig) -> Self {
+        Self {
+            cfg,
+            peers: BTreeMap::new(),
+            sessions: BTreeMap::new(),
+            next_session: 1,
+        }
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &HubConfig {
+        &self.cfg
+    }
+
+    /// A new connection was accepted.
+    pub fn connect(&mut self, conn: ConnId, _now: Instant) {
+        self.peers.insert(conn, Peer::Fresh);
+    }
+
+    /// One text frame from `conn`. Refused messages produce an `error` to `conn` only.
+    pub fn handle_text(&mut self, conn: ConnId, text: &str, now: Instant) -> Vec<Outgoing> {
+        if !self.peers.contains_key(&conn) {
+            return Vec::new();
+        }
+        let result = if text.len() > self.cfg.max_message_bytes {
+            Err(SignalError::TooLarge {
+                len_bytes: text.len(),
+                max_bytes: self.cfg.max_message_bytes,
+            })
+        } else {
+            serde_json::from_str::<ToSignal>(text)
+                .map_err(|e| SignalError::BadMessage(e.to_string()))
+                .and_then(|msg| self.dispatch(conn, msg, now))
+        };
+        result.unwrap_or_else(|err| {
+            tracing::debug!(%conn, %err, "refused signaling message");
+            let (code, message) = (err.code(), err.to_string());
+            let msg = match self.peers.get(&conn) {
+                Some(Peer::Master(_)) => ToPeer::Master(ToMaster::Error { code, message }),
+                _ => ToPeer::Client(ToClient::Error { code, message }),
+            };
+            vec![Outgoing {
+                to: conn,
+                msg,
+                close: matches!(err, SignalError::Unauthorized),
+            }]
+        })
+    }
+
+    /// `conn` is gone: its master hears `leave`, or its clients hear `master_lost`.
+    pub fn disconnect(&mut self, conn: ConnId, _now: Instant) -> Vec<Outgoing> {
+        match self.peers.remove(&conn) {
+            Some(Peer::Client {
+                session: Some(session),
+            }) => self.end_session(&session).1.into_iter().collect(),
+            Some(Peer::Master(m)) => self.lose_master(conn, &m.id, "disconnected"),
+            _ => Vec::new(),
+        }
+    }
+
+    /// Drop masters silent for longer than `heartbeat_timeout`.
+    pub fn tick(&mut self, now: Instant) -> Vec<Outgoing> {
+        let timeout = self.cfg.heartbeat_timeout;
+        let stale: Vec<(ConnId, String)> = self
+            .peers
+            .iter()
+            .filter_map(|(conn, peer)| match peer {
+                Peer::Master(m) if now.saturating_duration_since(m.last_seen) > timeout => {
+                    Some((*conn, m.id.clone()))
+                }
+                _ => None,
+            })
+            .collect();
+        let mut out = Vec::new();
+        for (conn, id) in stale {
+            tracing::warn!(master = %id, timeout_secs = timeout.as_secs_f64(), "master missed its heartbeat");
+            self.peers.remove(&conn);
+            let message = format!("no heartbeat for {:.1} s", timeout.as_secs_f64());
+            out.push(Outgoing {
+                to: conn,
+                msg: ToPeer::Master(ToMaster::Error {
+                    code: ErrorCode::MasterLost,
+                    message,
+                }),
+                close: true,
+            });
+            out.extend(self.lose_master(conn, &id, "stopped sending heartbeats"));
+        }
+        out
+    }
+
+    /// Masters and their load.
+    pub fn stats(&self) -> HubStats {
+        let mut clients = 0;
+        let mut masters = Vec::new();
+        for peer in self.peers.values() {
+            match peer {
+                Peer::Client { .. } => clients += 1,
+                Peer::Master(m) => masters.push(MasterStats {
+                    master: m.id.clone(),
+                    capacity: m.capacity,
+                    sessions: m.sessions,
+                }),
+                Peer::Fresh => {}
+            }
+        }
+        masters.sort_by(|a, b| a.master.cmp(&b.master));
+        HubStats {
+            masters,
+            clients,
+            sessions: self.sessions.len(),
+        }
+    }
+
+    fn dispatch(&mut self, conn: ConnId, msg: ToSignal, now: Instant) -> Res {
+        let peer = self.peers.get_mut(&conn).expect("checked by handle_text");
+        match (peer, msg) {
+            (
+                Peer::Fresh | Peer::Client { .. },
+                ToSignal::Join {
+                    scene,
+                    mode,
+                    width,
+                    height,
+                    fps,
+                    token,
+                },
+            ) => self.join(
+                conn,
+                JoinRequest {
+                    scene,
+                    mode,
+                    width,
+                    height,
+                    fps,
+                },
+                token.as_deref(),
+            ),
+            (
+                Peer::Fresh,
+                ToSignal::Register {
+                    name,
+                    capacity,
+                    token,
+                },
+            ) => self.register(conn, &name, capacity, token.as_deref(), now),
+            (Peer::Fresh, msg) => Err(SignalError::NotJoined(kind(&msg))),
+            (Peer::Client { session }, ToSignal::Offer { sdp }) => {
+                let session = session.clone().ok_or(SignalError::NotJoined("offer"))?;
+                let master = self.sessions[&session].master;
+                Ok(vec![Outgoing::master(
+                    master,
+                    ToMaster::Offer { session, sdp },
+                )])
+            }
+            (Peer::Client { session }, ToSignal::Ice { candidate, .. }) => {
+                let session = session.clone().ok_or(SignalError::NotJoined("ice"))?;
+                let master = self.sessions[&session].master;
+                Ok(vec![Outgoing::master(
+                    master,
+                    ToMaster::Ice { session, candidate },
+                )])
+            }
+            (Peer::Client { session }, ToSignal::Leave {}) => match session.take() {
+                Some(session) => Ok(self.end_session(&session).1.into_iter().collect()),
+                None => Ok(Vec::new()),
+            },
+            (Peer::Client { .. }, msg) => Err(SignalError::WrongRole {
+                kind: kind(&msg),
+                role: "client",
+            }),
+            (Peer::Master(m), ToSignal::Heartbeat { sessions }) => {
+                m.last_seen = now;
+                m.sessions = sessions;
+                Ok(Vec::new())
+            }
+            (Peer::Master(m), ToSignal::Answer { session, sdp }) => {
+                m.last_seen = now;
+                Ok(self.to_client_of(conn, &session, ToClient::Answer { sdp }))
+            }
+            (Peer::Master(m), ToSignal::Ice { session, candidate }) => {
+                m.last_seen = now;
+                let session = session.ok_or_else(|| {
+                    SignalError::BadRequest("`ice` from a master needs `session`".into())
+                })?;
+                Ok(self.to_client_of(conn, &session, ToClient::Ice { candidate }))
+            }
+            (Peer::Master(m), ToSignal::Reject { session, reason }) => {
+                m.last_seen = now;
+                Ok(self.finish_by_master(
+                    conn,
+                    &session,
+                    ToClient::Error {
+                        code: ErrorCode::Rejected,
+                        message: reason,
+                    },
+                ))
+            }
+            (Peer::Master(m), ToSignal::End { session, reason }) => {
+                m.last_seen = now;
+                Ok(self.finish_by_master(conn, &session, ToClient::Ended { reason }))
+            }
+            (Peer::Master(_), msg) => Err(SignalError::WrongRole {
+                kind: kind(&msg),
+                role: "master",
+            }),
+        }
+    }
+
+    fn check_token(&self, token: Option<&str>) -> Result<(), SignalError> {
+        match &self.cfg.token {
+            Some(expected)
+                if !token.is_some_and(|t| constant_time_eq(t.as_bytes(), expected.as_bytes())) =>
+            {
+                Err(SignalError::Unauthorized)
+            }
+            _ => Ok(()),
+        }
+    }
+
+    fn join(&mut self, conn: ConnId, req: JoinRequest, token: Option<&str>) -> Res {
+        self.check_token(token)?;
+        if let Some(Peer::Client {
+            session: Some(session),
+        }) = self.peers.get(&conn)
+        {
+            return Err(SignalError::BadRequest(format!(
+                "already in session {session}; send `leave` first"
+            )));
+        }
+        req.validate()?;
+        let master_conn = self.pick_master()?;
+        let session = format!("s{}", self.next_session);
+        self.next_session += 1;
+        let Some(Peer::Master(master)) = self.peers.get_mut(&master_conn) else {
+            unreachable!("picked a master")
+        };
+        master.sessions += 1;
+        let master_id = master.id.clone();
+        tracing::info!(%session, master = %master_id, scene = %req.scene, mode = ?req.mode, width = req.width, height = req.height, fps = req.fps, "session paired");
+        self.sessions.insert(
+            session.clone(),
+            Session {
+                client: conn,
+                master: master_conn,
+            },
+        );
+        self.peers.insert(
+            conn,
+            Peer::Client {
+                session: Some(session.clone()),
+            },
+        );
+        let JoinRequest {
+            scene,
+            mode,
+            width,
+            height,
+            fps,
+        } = req;
+        Ok(vec![
+            Outgoing::client(
+                conn,
+                ToClient::Joined {
+                    session: session.clone(),
+                    master: master_id,
+                },
+            ),
+            Outgoing::master(
+                master_conn,
+                ToMaster::Join {
+                    session,
+                    scene,
+                    mode,
+                    width,
+                    height,
+                    fps,
+                },
+            ),
+        ])
+    }
+
+    /// The master with room and the least load; ties go to the smaller id.
+    fn pick_master(&self) -> Result<ConnId, SignalError> {
+        let masters: Vec<(ConnId, &Master)> = self
+            .peers
+            .iter()
+            .filter_map(|(c, p)| match p {
+                Peer::Master(m) => Some((*c, m)),
+                _ => None,
+            })
+            .collect();
+        if masters.is_empty() {
+            return Err(SignalError::NoMaster);
+        }
+        masters
+            .iter()
+            .filter(|(_, m)| m.sessions < m.capacity)
+            .min_by(|(_, a), (_, b)| {
+                // Compare sessions/capacity exactly: a.s/a.c < b.s/b.c  <=>  a.s*b.c < b.s*a.c.
+                let load_a = u64::from(a.sessions) * u64::from(b.capacity);
+                let load_b = u64::from(b.sessions) * u64::from(a.capacity);
+                load_a.cmp(&load_b).then_with(|| a.id.cmp(&b.id))
+            })
+            .map(|(c, _)| *c)
+            .ok_or(SignalError::AllFull(masters.len()))
+    }
+
+    fn register(
+        &mut self,
+        conn: ConnId,
+        name: &str,
+        capacity: u32,
+        token: Option<&str>,
+        now: Instant,
+    ) -> Res {
+        self.check_token(token)?;
+        validate_name("master name", name)?;
+        let taken = |id: &str| {
+            self.peers
+                .values()
+                .any(|p| matches!(p, Peer::Master(m) if m.id == id))
+        };
+        let id = if taken(name) {
+            format!("{name}-{}", conn.0)
+        } else {
+            name.to_owned()
+        };
+        tracing::info!(master = %id, capacity, "master registered");
+        self.peers.insert(
+            conn,
+            Peer::Master(Master {
+                id: id.clone(),
+                capacity,
+                sessions: 0,
+                last_seen: now,
+            }),
+        );
+        Ok(vec![Outgoing::master(
+            conn,
+            ToMaster::Registered { master: id },
+        )])
+    }
+
+    /// Forward to the client of `session` if `master` owns it; stale ids are dropped
+    /// silently (the client may have just left, and the master hears `leave`).
+    fn to_client_of(&self, master: ConnId, session: &str, msg: ToClient) -> Vec<Outgoing> {
+        match self.sessions.get(session) {
+            Some(s) if s.master == master => vec![Outgoing::client(s.client, msg)],
+            _ => {
+                tracing::debug!(%master, session, "dropping message for an unknown session");
+                Vec::new()
+            }
+        }
+    }
+
+    /// The master ends one of its sessions; its client gets `msg`.
+    fn finish_by_master(&mut self, master: ConnId, session: &str, msg: ToClient) -> Vec<Outgoing> {
+        let owned = self
+            .sessions
+            .get(session)
+            .is_some_and(|s| s.master == master);
+        if !owned {
+            tracing::debug!(%master, session, "dropping message for an unknown session");
+            return Vec::new();
+        }
+        let (client, _) = self.end_session(session);
+        if let Some(Peer::Client { session }) = self.peers.get_mut(&client) {
+            *session = None;
+        }
+        tracing::info!(session, ?msg, "master finished session");
+        vec![Outgoing::client(client, msg)]
+    }
+
+    /// Forget `session` and free its slot; returns its client and the master's `leave`.
+    fn end_session(&mut self, session: &str) -> (ConnId, Option<Outgoing>) {
+        let Some(s) = self.sessions.remove(session) else {
+            unreachable!("session {session} is tracked")
+        };
+        let leave = match self.peers.get_mut(&s.master) {
+            Some(Peer::Master(m)) => {
+                m.sessions = m.sessions.saturating_sub(1);
+                Some(Outgoing::master(
+                    s.master,
+                    ToMaster::Leave {
+                        session: session.to_owned(),
+                    },
+                ))
+            }
+            _ => None,
+        };
+        (s.client, leave)
+    }
+
+    /// The master at `conn` (already removed from `peers`) is gone: tell its clients.
+    fn lose_master(&mut self, conn: ConnId, id: &str, why: &str) -> Vec<Outgoing> {
+        let lost: Vec<String> = self
+            .sessions
+            .iter()
+            .filter(|(_, s)| s.master == conn)
+            .map(|(k, _)| k.clone())
+            .collect();
+        tracing::info!(master = id, sessions = lost.len(), why, "master lost");
+        let mut out = Vec::new();
+        for session in lost {
+            let (client, _) = self.end_session(&session);
+            if let Some(Peer::Client { session }) = self.peers.get_mut(&client) {
+                *session = None;
+            }
+            let message = format!("master {id} {why}");
+            out.push(Outgoing::client(
+                client,
+                ToClient::Error {
+                    code: ErrorCode::MasterLost,
+                    message,
+                },
+            ));
+        }
+        out
+    }
+}
+
+struct JoinRequest {
+    scene: String,
+    mode: Mode,
+    width: u32,
+    height: u32,
+    fps: u32,
+}
+
+impl JoinRequest {
+    fn validate(&self) -> Result<(), SignalError> {
+        validate_name("scene", &self.scene)?;
+        let (w, h, fps) = (self.width, self.height, self.fps);
+        if !(1..=7680).contains(&w) || !(1..=4320).contains(&h) {
+            return Err(SignalError::BadRequest(format!(
+                "size {w}x{h} is outside 1x1..=7680x4320"
+            )));
+        }
+        if !(1..=120).contains(&fps) {
+            return Err(SignalError::BadRequest(format!(
+                "fps {fps} is outside 1..=120"
+            )));
+        }
+        Ok(())
+    }
+}
+
+fn validate_name(what: &str, name: &str) -> Result<(), SignalError> {
+    let ok_char = |c: char| c.is_ascii_alphanumeric() || c == '_' || c == '-';
+    if name.is_empty() || name.len() > 64 || !name.chars().all(ok_char) {
+        return Err(SignalError::BadRequest(format!(
+            "{what} must be 1 to 64 characters of A-Z a-z 0-9 _ -"
+        )));
+    }
+    Ok(())
+}
+
+/// Wire name of a message type, for error texts.
+fn kind(msg: &ToSignal) -> &'static str {
+    match msg {
+        ToSignal::Join { .. } => "join",
+        ToSignal::Offer { .. } => "offer",
+        ToSignal::Ice { .. } => "ice",
+        ToSignal::Leave {} => "leave",
+        ToSignal::Register { .. } => "register",
+        ToSignal::Heartbeat { .. } => "heartbeat",
+        ToSignal::Answer { .. } => "answer",
+        ToSignal::Reject { .. } => "reject",
+        ToSignal::End { .. } => "end",
+    }
+}
+
+/// Compare secrets without an early exit on the first differing byte.
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::{Value, json};
+
+    const TIMEOUT: Duration = Duration::from_secs(15);
+
+    fn hub_with(token: Option<&str>) -> (Hub, Instant) {
+        let cfg = HubConfig {
+            token: token.map(str::to_owned),
+            heartbeat_timeout: TIMEOUT,
+            max_message_bytes: 1024,
+        };
+        (Hub::new(cfg), Instant::now())
+    }
+
+    fn send(hub: &mut Hub, conn: u64, msg: Value, now: Instant) -> Vec<Outgoing> {
+        hub.handle_text(ConnId(conn), &msg.to_string(), now)
+    }
+
+    /// Outgoing messages as `(to, json)` for easy matching.
+    fn json_of(out: &[Outgoing]) -> Vec<(u64, Value)> {
+        out.iter()
+            .map(|o| (o.to.0, serde_json::from_str(&o.msg.to_json()).unwrap()))
+            .collect()
+    }
+
+    fn error_code(out: &[Outgoing]) -> (u64, String, String) {
+        let [(to, v)] = json_of(out).try_into().unwrap();
+        assert_eq!(v["type"], "error", "{v}");
+        (
+            to,
+            v["code"].as_str().unwrap().to_owned(),
+            v["message"].as_str().unwrap().to_owned(),
+        )
+    }
+
+    fn add_master(hub: &mut Hub, conn: u64, name: &str, capacity: u32, now: Instant) {
+        hub.connect(ConnId(conn), now);
+        let out = send(
+            hub,
+            conn,
+            json!({"type":"register","name":name,"capacity":capacity}),
+            now,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(conn, json!({"type":"registered","master":name}))]
+        );
+    }
+
+    fn join_json() -> Value {
+        json!({"type":"join","scene":"cubes","mode":"viewer","width":1280,"height":720,"fps":60})
+    }
+
+    /// Connect and join; returns (session, master conn).
+    fn add_client(hub: &mut Hub, conn: u64, now: Instant) -> (String, u64) {
+        hub.connect(ConnId(conn), now);
+        let out = json_of(&send(hub, conn, join_json(), now));
+        assert_eq!(out.len(), 2, "{out:?}");
+        let session = out[0].1["session"].as_str().unwrap().to_owned();
+        assert_eq!(out[0].0, conn);
+        assert_eq!(out[0].1["type"], "joined");
+        assert_eq!(
+            out[1].1,
+            json!({"type":"join","session":session,"scene":"cubes","mode":"viewer","width":1280,"height":720,"fps":60})
+        );
+        (session, out[1].0)
+    }
+
+    fn master_sessions(hub: &Hub) -> Vec<(String, u32)> {
+        hub.stats()
+            .masters
+            .into_iter()
+            .map(|m| (m.master, m.sessions))
+            .collect()
+    }
+
+    #[test]
+    fn pairs_least_loaded_then_reports_full() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "b", 2, t0);
+        add_master(&mut hub, 2, "a", 4, t0);
+        // Loads before each join (a/4, b/2): tie→a, 1/4<0/2? no: b, 1/4<1/2: a,
+        // 2/4=1/2 tie→a, 3/4>1/2: b, b full: a.
+        let picked: Vec<u64> = (10..16).map(|c| add_client(&mut hub, c, t0).1).collect();
+        assert_eq!(picked, vec![2, 1, 2, 2, 1, 2]);
+        assert_eq!(
+            master_sessions(&hub),
+            vec![("a".into(), 4), ("b".into(), 2)]
+        );
+
+        hub.connect(ConnId(20), t0);
+        let (to, code, message) = error_code(&send(&mut hub, 20, join_json(), t0));
+        assert_eq!((to, code.as_str()), (20, "no_capacity"));
+        assert!(message.contains("all 2 masters are full"), "{message}");
+    }
+
+    #[test]
+    fn no_master_means_no_capacity() {
+        let (mut hub, t0) = hub_with(None);
+        hub.connect(ConnId(1), t0);
+        let (_, code, message) = error_code(&send(&mut hub, 1, join_json(), t0));
+        assert_eq!(code, "no_capacity");
+        assert!(message.contains("no master is registered"), "{message}");
+    }
+
+    #[test]
+    fn token_is_required_when_configured() {
+        let (mut hub, t0) = hub_with(Some("s3cret"));
+        hub.connect(ConnId(1), t0);
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"register","name":"m","capacity":1}),
+            t0,
+        );
+        assert_eq!(error_code(&out).1, "unauthorized");
+        assert!(out[0].close);
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"register","name":"m","capacity":1,"token":"s3cre"}),
+            t0,
+        );
+        assert_eq!(error_code(&out).1, "unauthorized");
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"register","name":"m","capacity":1,"token":"s3cret"}),
+            t0,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(1, json!({"type":"registered","master":"m"}))]
+        );
+
+        hub.connect(ConnId(2), t0);
+        assert_eq!(
+            error_code(&send(&mut hub, 2, join_json(), t0)).1,
+            "unauthorized"
+        );
+        let mut join = join_json();
+        join["token"] = json!("s3cret");
+        assert_eq!(json_of(&send(&mut hub, 2, join, t0))[0].1["type"], "joined");
+    }
+
+    #[test]
+    fn malformed_and_oversize_messages_hurt_only_their_sender() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m", 4, t0);
+        let (session, _) = add_client(&mut hub, 2, t0);
+        for bad in [
+            "{not json",
+            "[]",
+            r#"{"type":"dance"}"#,
+            r#"{"type":"join","scene":"x"}"#,
+            "",
+        ] {
+            let out = hub.handle_text(ConnId(2), bad, t0);
+            let (to, code, _) = error_code(&out);
+            assert_eq!(
+                (to, code.as_str(), out[0].close),
+                (2, "bad_message", false),
+                "{bad}"
+            );
+        }
+        let big = json!({"type":"offer","sdp":"x".repeat(2000)}).to_string();
+        let (to, code, message) = error_code(&hub.handle_text(ConnId(2), &big, t0));
+        assert_eq!((to, code.as_str()), (2, "too_large"));
+        assert!(message.contains("limit is 1024 bytes"), "{message}");
+        // Masters get errors in the same shape.
+        let (to, code, _) = error_code(&hub.handle_text(ConnId(1), "nope", t0));
+        assert_eq!((to, code.as_str()), (1, "bad_message"));
+        // The session still works.
+        let out = send(&mut hub, 2, json!({"type":"offer","sdp":"v=0"}), t0);
+        assert_eq!(
+            json_of(&out),
+            vec![(1, json!({"type":"offer","session":session,"sdp":"v=0"}))]
+        );
+    }
+
+    #[test]
+    fn absurd_joins_are_bad_requests() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m", 4, t0);
+        hub.connect(ConnId(2), t0);
+        let cases = [
+            ("width", json!(0)),
+            ("width", json!(7682)),
+            ("height", json!(4321)),
+            ("fps", json!(0)),
+            ("fps", json!(240)),
+            ("scene", json!("")),
+            ("scene", json!("../etc")),
+            ("scene", json!("x".repeat(65))),
+        ];
+        for (field, value) in cases {
+            let mut join = join_json();
+            join[field] = value.clone();
+            assert_eq!(
+                error_code(&send(&mut hub, 2, join, t0)).1,
+                "bad_request",
+                "{field}={value}"
+            );
+        }
+        let mut odd = join_json();
+        odd["width"] = json!(7679);
+        odd["height"] = json!(1);
+        odd["fps"] = json!(120);
+        odd["scene"] = json!("A-z_9");
+        assert_eq!(json_of(&send(&mut hub, 2, odd, t0))[0].1["type"], "joined");
+        assert_eq!(
+            error_code(&send(&mut hub, 2, join_json(), t0)).1,
+            "bad_request",
+            "second join"
+        );
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 1)]);
+    }
+
+    #[test]
+    fn messages_must_suit_the_role() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m", 4, t0);
+        let (session, _) = add_client(&mut hub, 2, t0);
+        let answer = json!({"type":"answer","session":session,"sdp":"v=0"});
+        assert_eq!(
+            error_code(&send(&mut hub, 2, answer.clone(), t0)).1,
+            "wrong_role"
+        );
+        assert_eq!(
+            error_code(&send(
+                &mut hub,
+                2,
+                json!({"type":"register","name":"x","capacity":1}),
+                t0
+            ))
+            .1,
+            "wrong_role"
+        );
+        assert_eq!(
+            error_code(&send(&mut hub, 1, json!({"type":"offer","sdp":"v=0"}), t0)).1,
+            "wrong_role"
+        );
+        assert_eq!(
+            error_code(&send(&mut hub, 1, join_json(), t0)).1,
+            "wrong_role"
+        );
+        assert_eq!(
+            error_code(&send(&mut hub, 1, json!({"type":"ice","candidate":{}}), t0)).1,
+            "bad_request"
+        );
+
+        hub.connect(ConnId(3), t0);
+        assert_eq!(
+            error_code(&send(&mut hub, 3, json!({"type":"offer","sdp":"v=0"}), t0)).1,
+            "not_joined"
+        );
+        assert_eq!(error_code(&send(&mut hub, 3, answer, t0)).1, "not_joined");
+        // After leaving, session messages need a new join.
+        send(&mut hub, 2, json!({"type":"leave"}), t0);
+        assert_eq!(
+            error_code(&send(&mut hub, 2, json!({"type":"ice","candidate":{}}), t0)).1,
+            "not_joined"
+        );
+    }
+
+    #[test]
+    fn relays_offer_answer_and_ice_by_session() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m1", 1, t0);
+        add_master(&mut hub, 2, "m2", 1, t0);
+        let (s10, m10) = add_client(&mut hub, 10, t0);
+        let (s11, m11) = add_client(&mut hub, 11, t0);
+        assert_eq!((m10, m11), (1, 2));
+        let cand = json!({"candidate":"candidate:1 1 udp 2113937151 10.0.0.2 5000 typ host","sdpMid":"0","sdpMLineIndex":0});
+
+        let out = send(&mut hub, 11, json!({"type":"offer","sdp":"offer11"}), t0);
+        assert_eq!(
+            json_of(&out),
+            vec![(2, json!({"type":"offer","session":s11,"sdp":"offer11"}))]
+        );
+        let out = send(&mut hub, 10, json!({"type":"ice","candidate":cand}), t0);
+        assert_eq!(
+            json_of(&out),
+            vec![(1, json!({"type":"ice","session":s10,"candidate":cand}))]
+        );
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"answer","session":s10,"sdp":"answer10"}),
+            t0,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(10, json!({"type":"answer","sdp":"answer10"}))]
+        );
+        let out = send(
+            &mut hub,
+            2,
+            json!({"type":"ice","session":s11,"candidate":cand}),
+            t0,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(11, json!({"type":"ice","candidate":cand}))]
+        );
+        // A master cannot address another master's session, nor an unknown one.
+        assert!(
+            send(
+                &mut hub,
+                2,
+                json!({"type":"answer","session":s10,"sdp":"x"}),
+                t0
+            )
+            .is_empty()
+        );
+        assert!(
+            send(
+                &mut hub,
+                2,
+                json!({"type":"end","session":s10,"reason":"x"}),
+                t0
+            )
+            .is_empty()
+        );
+        assert!(
+            send(
+                &mut hub,
+                2,
+                json!({"type":"answer","session":"s999","sdp":"x"}),
+                t0
+            )
+            .is_empty()
+        );
+    }
+
+    #[test]
+    fn session_counts_follow_leave_end_reject_disconnect_and_heartbeats() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m", 10, t0);
+        let sessions: Vec<String> = (10..15).map(|c| add_client(&mut hub, c, t0).0).collect();
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 5)]);
+
+        let out = send(&mut hub, 10, json!({"type":"leave"}), t0);
+        assert_eq!(
+            json_of(&out),
+            vec![(1, json!({"type":"leave","session":sessions[0]}))]
+        );
+        let out = hub.disconnect(ConnId(11), t0);
+        assert_eq!(
+            json_of(&out),
+            vec![(1, json!({"type":"leave","session":sessions[1]}))]
+        );
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"reject","session":sessions[2],"reason":"unknown scene"}),
+            t0,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(
+                12,
+                json!({"type":"error","code":"rejected","message":"unknown scene"})
+            )]
+        );
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"end","session":sessions[3],"reason":"shutting down"}),
+            t0,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(13, json!({"type":"ended","reason":"shutting down"}))]
+        );
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 1)]);
+        assert_eq!(hub.stats().sessions, 1);
+        // Ended clients may join again.
+        add_client(&mut hub, 13, t0);
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 2)]);
+        // The master's own count wins.
+        assert!(send(&mut hub, 1, json!({"type":"heartbeat","sessions":7}), t0).is_empty());
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 7)]);
+    }
+
+    #[test]
+    fn silent_master_is_dropped_and_its_clients_told() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "quiet", 4, t0);
+        add_master(&mut hub, 2, "chatty", 4, t0);
+        let (_, m) = add_client(&mut hub, 10, t0);
+        assert_eq!(m, 2, "chatty < quiet");
+        add_client(&mut hub, 11, t0);
+        add_client(&mut hub, 12, t0);
+
+        let t10 = t0 + Duration::from_secs(10);
+        send(&mut hub, 2, json!({"type":"heartbeat","sessions":2}), t10);
+        assert!(
+            hub.tick(t0 + TIMEOUT).is_empty(),
+            "exactly at the timeout is still alive"
+        );
+        let out = hub.tick(t0 + TIMEOUT + Duration::from_millis(1));
+        let mut got = json_of(&out);
+        got.sort_by_key(|(to, _)| *to);
+        assert_eq!(got.len(), 2, "{got:?}");
+        assert_eq!((got[0].0, &got[0].1["code"]), (1, &json!("master_lost")));
+        assert!(out.iter().find(|o| o.to == ConnId(1)).unwrap().close);
+        assert_eq!((got[1].0, &got[1].1["code"]), (11, &json!("master_lost")));
+        assert_eq!(master_sessions(&hub), vec![("chatty".into(), 2)]);
+
+        let out = hub.tick(t10 + TIMEOUT + Duration::from_millis(1));
+        let mut lost: Vec<u64> = out.iter().map(|o| o.to.0).collect();
+        lost.sort();
+        assert_eq!(lost, vec![2, 10, 12]);
+        assert_eq!(
+            hub.stats(),
+            HubStats {
+                masters: vec![],
+                clients: 3,
+                sessions: 0
+            }
+        );
+    }
+
+    #[test]
+    fn master_disconnect_loses_its_sessions_only() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m", 4, t0);
+        hub.connect(ConnId(2), t0);
+        let out = send(
+            &mut hub,
+            2,
+            json!({"type":"register","name":"m","capacity":4}),
+            t0,
+        );
+        assert_eq!(
+            json_of(&out),
+            vec![(2, json!({"type":"registered","master":"m-2"}))]
+        );
+        assert_eq!(
+            master_sessions(&hub),
+            vec![("m".into(), 0), ("m-2".into(), 0)]
+        );
+        add_client(&mut hub, 10, t0);
+        add_client(&mut hub, 11, t0);
+        let out = json_of(&hub.disconnect(ConnId(1), t0));
+        assert_eq!(
+            out,
+            vec![(
+                10,
+                json!({"type":"error","code":"master_lost","message":"master m disconnected"})
+            )]
+        );
+        assert_eq!(
+            error_code(&send(&mut hub, 10, json!({"type":"offer","sdp":"v=0"}), t0)).1,
+            "not_joined"
+        );
+        assert_eq!(
+            json_of(&send(&mut hub, 11, json!({"type":"offer","sdp":"v=0"}), t0))[0].0,
+            2
+        );
+    }
+}

@@ -1,0 +1,17 @@
+//! Nephele signaling: pairs browser/replay clients with master (render) nodes and
+//! relays WebRTC SDP and ICE between them over one websocket endpoint, `/signal`.
+//!
+//! - [`protocol`]: the JSON messages, shared with the master node, the replay client
+//!   and (by hand) the web page.
+//! - [`hub`]: the sans-IO state machine that pairs and routes.
+//! - [`server`]: the axum edge: websockets, `/status`, the heartbeat tick.
+//!
+//! This crate knows nothing about rendering.
+
+pub mod hub;
+pub mod protocol;
+pub mod server;
+
+pub use hub::{ConnId, Hub, HubConfig, HubStats, MasterStats, Outgoing, SignalError};
+pub use protocol::{ErrorCode, Mode, ToClient, ToMaster, ToPeer, ToSignal};
+pub use server::{SignalState, app, serve};

@@ -1,0 +1,235 @@
+//! Signaling wire protocol: the JSON messages exchanged over the `/signal` websocket.
+//!
+//! Every message is one JSON object in one text frame, tagged by `"type"` in
+//! snake_case, e.g. `{"type":"offer","sdp":"v=0..."}`. Clients (the browser page,
+//! the replay client) and masters (render nodes) share the endpoint; the first
+//! accepted message decides a connection's role: `join` makes it a client,
+//! `register` makes it a master.
+//!
+//! WebRTC roles: the client creates the offer (recvonly video plus a data channel),
+//! the master answers; ICE candidates are trickled both ways.
+//!
+//! These types are the single definition of the protocol: the master node and the
+//! replay client serialize/deserialize them, the web page mirrors them by hand.
+
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+/// How the client will display the stream; decides what the master renders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// A single view on a flat screen.
+    Viewer,
+    /// Side-by-side stereo for a headset.
+    Vr,
+    /// Object over pure green, keyed out by the client over its camera view.
+    Ar,
+    /// Looking Glass quilt of horizontally offset views.
+    Quilt,
+}
+
+/// Any message sent *to* signaling, by a client or by a master.
+///
+/// The hub checks that each message suits the sender's role.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ToSignal {
+    /// Client: ask for a session on a master with room.
+    Join {
+        /// Scene name: 1..=64 characters from `[A-Za-z0-9_-]`.
+        scene: String,
+        /// Display mode.
+        mode: Mode,
+        /// Requested frame width in pixels, 1..=7680.
+        width: u32,
+        /// Requested frame height in pixels, 1..=4320.
+        height: u32,
+        /// Requested frame rate in frames per second, 1..=120.
+        fps: u32,
+        /// Shared secret; required when signaling is configured with a token.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        token: Option<String>,
+    },
+    /// Client: the WebRTC offer for its session (after `joined`).
+    Offer {
+        /// SDP of the client's offer.
+        sdp: String,
+    },
+    /// Client or master: one trickled ICE candidate.
+    Ice {
+        /// Master only: the session the candidate belongs to. Clients omit it.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        session: Option<String>,
+        /// The `RTCIceCandidateInit` JSON as the browser gives it
+        /// (`{"candidate":..., "sdpMid":..., "sdpMLineIndex":...}`), relayed verbatim.
+        candidate: Value,
+    },
+    /// Client: end its session; the connection may `join` again.
+    Leave {},
+    /// Master: offer rendering capacity.
+    Register {
+        /// Human-readable master name: 1..=64 characters from `[A-Za-z0-9_-]`.
+        name: String,
+        /// Maximum number of concurrent sessions this master accepts.
+        capacity: u32,
+        /// Shared secret; required when signaling is configured with a token.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        token: Option<String>,
+    },
+    /// Master: liveness plus its authoritative count of live sessions.
+    Heartbeat {
+        /// Sessions the master is currently serving.
+        sessions: u32,
+    },
+    /// Master: the WebRTC answer to a client's offer.
+    Answer {
+        /// Session id from the `join` the master received.
+        session: String,
+        /// SDP of the master's answer.
+        sdp: String,
+    },
+    /// Master: refuse a session (e.g. unknown scene); the client gets `error rejected`.
+    Reject {
+        /// Session id being refused.
+        session: String,
+        /// Why, shown to the user.
+        reason: String,
+    },
+    /// Master: end a running session; the client gets `ended`.
+    End {
+        /// Session id being ended.
+        session: String,
+        /// Why, shown to the user.
+        reason: String,
+    },
+}
+
+/// Messages signaling sends to a client.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ToClient {
+    /// The join was accepted; the client should now send its `offer`.
+    Joined {
+        /// Session id assigned by signaling.
+        session: String,
+        /// Id of the master serving the session.
+        master: String,
+    },
+    /// The master's WebRTC answer.
+    Answer {
+        /// SDP of the master's answer.
+        sdp: String,
+    },
+    /// One ICE candidate from the master (`RTCIceCandidateInit` JSON).
+    Ice {
+        /// Candidate, relayed verbatim.
+        candidate: Value,
+    },
+    /// A request failed, or the session was lost; see [`ErrorCode`].
+    Error {
+        /// Machine-readable reason.
+        code: ErrorCode,
+        /// Human-readable explanation.
+        message: String,
+    },
+    /// The master ended the session; the client may `join` again.
+    Ended {
+        /// Why, from the master.
+        reason: String,
+    },
+}
+
+/// Messages signaling sends to a master.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ToMaster {
+    /// Registration accepted.
+    Registered {
+        /// Id assigned to this master: its name, made unique if already taken.
+        master: String,
+    },
+    /// A client was paired with this master; expect its `offer` next.
+    Join {
+        /// Session id; quote it in every message about this session.
+        session: String,
+        /// Scene name (validated: 1..=64 of `[A-Za-z0-9_-]`).
+        scene: String,
+        /// Display mode.
+        mode: Mode,
+        /// Frame width in pixels.
+        width: u32,
+        /// Frame height in pixels.
+        height: u32,
+        /// Frame rate in frames per second.
+        fps: u32,
+    },
+    /// The client's WebRTC offer.
+    Offer {
+        /// Session id.
+        session: String,
+        /// SDP of the client's offer.
+        sdp: String,
+    },
+    /// One ICE candidate from the client (`RTCIceCandidateInit` JSON).
+    Ice {
+        /// Session id.
+        session: String,
+        /// Candidate, relayed verbatim.
+        candidate: Value,
+    },
+    /// The client left or disconnected; tear the session down.
+    Leave {
+        /// Session id.
+        session: String,
+    },
+    /// A request from the master failed; see [`ErrorCode`].
+    Error {
+        /// Machine-readable reason.
+        code: ErrorCode,
+        /// Human-readable explanation.
+        message: String,
+    },
+}
+
+/// Machine-readable error reasons, sent as snake_case strings.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// Not valid JSON, or not a known message.
+    BadMessage,
+    /// Message longer than the configured limit.
+    TooLarge,
+    /// Missing or wrong token; the connection is closed.
+    Unauthorized,
+    /// No master has room for another session.
+    NoCapacity,
+    /// Well-formed but unacceptable (absurd size, bad scene name, already joined...).
+    BadRequest,
+    /// The session's master disconnected or stopped sending heartbeats.
+    MasterLost,
+    /// The master refused the session.
+    Rejected,
+    /// A message that the sender's role may not send.
+    WrongRole,
+    /// A session message before `join` (or a master message before `register`).
+    NotJoined,
+}
+
+/// A message to either kind of peer; serializes exactly like the inner message.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum ToPeer {
+    /// To a client (or to a connection without a role yet).
+    Client(ToClient),
+    /// To a master.
+    Master(ToMaster),
+}
+
+impl ToPeer {
+    /// The JSON text frame for this message.
+    pub fn to_json(&self) -> String {
+        // Serializing these plain enums of strings, numbers and `Value` cannot fail.
+        serde_json::to_string(self).expect("signaling messages always serialize")
+    }
+}

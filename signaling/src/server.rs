@@ -1,0 +1,201 @@
+//! The IO edge of signaling: axum routes, one task per websocket, a heartbeat tick.
+//!
+//! `GET /signal` upgrades to a websocket whose text frames are fed to the [`Hub`];
+//! the hub's [`Outgoing`] messages are delivered through a bounded per-connection
+//! channel to that connection's task, which owns the socket. `GET /status` returns
+//! [`HubStats`](crate::HubStats) as JSON. The hub sits behind a `std::sync::Mutex`:
+//! every hub call is short and synchronous, and no lock is held across an `.await`.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use axum::Router;
+use axum::extract::State;
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+use tracing::Instrument;
+
+use crate::hub::{ConnId, Hub, HubConfig, Outgoing};
+
+/// Messages queued per connection before a non-reading peer is disconnected.
+const SEND_QUEUE_LEN: usize = 64;
+
+/// A peer that does not accept a frame within this time is disconnected.
+const SEND_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// What a connection task is asked to do with its socket.
+#[derive(Debug)]
+enum Frame {
+    Text(String),
+    Close,
+}
+
+/// Shared state of the signaling routes; cheap to clone.
+#[derive(Clone)]
+pub struct SignalState {
+    inner: Arc<Shared>,
+}
+
+struct Shared {
+    core: Mutex<Core>,
+    next_conn: AtomicU64,
+    max_message_bytes: usize,
+    heartbeat_timeout: Duration,
+}
+
+struct Core {
+    hub: Hub,
+    senders: HashMap<ConnId, mpsc::Sender<Frame>>,
+}
+
+impl SignalState {
+    /// A fresh hub with `cfg`. Remember to [`spawn_tick_task`](Self::spawn_tick_task).
+    pub fn new(cfg: HubConfig) -> Self {
+        let (max_message_bytes, heartbeat_timeout) = (cfg.max_message_bytes, cfg.heartbeat_timeout);
+        let core = Core {
+            hub: Hub::new(cfg),
+            senders: HashMap::new(),
+        };
+        Self {
+            inner: Arc::new(Shared {
+                core: Mutex::new(core),
+                next_conn: AtomicU64::new(1),
+                max_message_bytes,
+                heartbeat_timeout,
+            }),
+        }
+    }
+
+    /// Spawn the task that drops masters whose heartbeat is older than the timeout.
+    /// It checks four times per timeout and runs until aborted.
+    pub fn spawn_tick_task(&self) -> JoinHandle<()> {
+        let state = self.clone();
+        let period = (self.inner.heartbeat_timeout / 4).max(Duration::from_millis(10));
+        tokio::spawn(async move {
+            let mut interval = tokio::time::interval(period);
+            interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                interval.tick().await;
+                state.with_hub(|hub| hub.tick(Instant::now()));
+            }
+        })
+    }
+
+    /// Current masters and load.
+    pub fn stats(&self) -> crate::HubStats {
+        self.lock().hub.stats()
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Core> {
+        // A panic inside the hub is a bug; the state is still the best we have.
+        self.inner
+            .core
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// Run `f` on the hub and deliver what it returns.
+    fn with_hub(&self, f: impl FnOnce(&mut Hub) -> Vec<Outgoing>) {
+        let mut core = self.lock();
+        let out = f(&mut core.hub);
+        for Outgoing { to, msg, close } in out {
+            let Some(tx) = core.senders.get(&to) else {
+                continue;
+            };
+            let mut ok = tx.try_send(Frame::Text(msg.to_json())).is_ok();
+            if close {
+                ok &= tx.try_send(Frame::Close).is_ok();
+            }
+            if !ok || close {
+                if !ok {
+                    tracing::warn!(conn = %to, "peer is not reading its messages; disconnecting");
+                }
+                // Dropping the sender ends the connection task once its queue drains.
+                core.senders.remove(&to);
+            }
+        }
+    }
+}
+
+/// The signaling routes (`GET /signal`, `GET /status`) with state applied, ready to
+/// `merge` into a bigger app. The tick task is separate: see [`SignalState::spawn_tick_task`].
+pub fn app(state: SignalState) -> Router {
+    Router::new()
+        .route("/signal", get(upgrade))
+        .route("/status", get(status))
+        .with_state(state)
+}
+
+/// Serve signaling alone on `listener` (with its tick task) until the server fails.
+pub async fn serve(listener: tokio::net::TcpListener, cfg: HubConfig) -> std::io::Result<()> {
+    let state = SignalState::new(cfg);
+    let tick = state.spawn_tick_task();
+    let result = axum::serve(listener, app(state)).await;
+    tick.abort();
+    result
+}
+
+async fn status(State(state): State<SignalState>) -> Response {
+    axum::Json(state.stats()).into_response()
+}
+
+async fn upgrade(State(state): State<SignalState>, ws: WebSocketUpgrade) -> Response {
+    // Frames up to 4x the hub limit reach the hub (which answers `too_large` and keeps
+    // the connection); anything bigger is a protocol violation that drops the socket.
+    let hard_limit_bytes = state.inner.max_message_bytes.saturating_mul(4).max(1024);
+    ws.max_message_size(hard_limit_bytes)
+        .max_frame_size(hard_limit_bytes)
+        .on_upgrade(move |socket| {
+            let conn = ConnId(state.inner.next_conn.fetch_add(1, Ordering::Relaxed));
+            run_connection(state, conn, socket).instrument(tracing::info_span!("signal", %conn))
+        })
+}
+
+async fn run_connection(state: SignalState, conn: ConnId, mut socket: WebSocket) {
+    let (tx, mut rx) = mpsc::channel(SEND_QUEUE_LEN);
+    {
+        let mut core = state.lock();
+        core.senders.insert(conn, tx);
+        core.hub.connect(conn, Instant::now());
+    }
+    tracing::debug!("connected");
+    loop {
+        tokio::select! {
+            incoming = socket.recv() => match incoming {
+                Some(Ok(Message::Text(text))) => state.with_hub(|hub| hub.handle_text(conn, text.as_str(), Instant::now())),
+                // JSON in a binary frame is tolerated; anything else is a bad message.
+                Some(Ok(Message::Binary(bytes))) => {
+                    let text = String::from_utf8_lossy(&bytes);
+                    state.with_hub(|hub| hub.handle_text(conn, &text, Instant::now()));
+                }
+                Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
+                Some(Ok(Message::Close(_))) | None => break,
+                Some(Err(err)) => {
+                    tracing::debug!(%err, "websocket read failed");
+                    break;
+                }
+            },
+            frame = rx.recv() => match frame {
+                Some(Frame::Text(text)) => {
+                    let sent = tokio::time::timeout(SEND_TIMEOUT, socket.send(Message::Text(text.into()))).await;
+                    if !matches!(sent, Ok(Ok(()))) {
+                        tracing::debug!(?sent, "websocket write failed or timed out");
+                        break;
+                    }
+                }
+                Some(Frame::Close) | None => {
+                    let _ = tokio::time::timeout(SEND_TIMEOUT, socket.send(Message::Close(None))).await;
+                    break;
+                }
+            },
+        }
+    }
+    state.lock().senders.remove(&conn);
+    state.with_hub(|hub| hub.disconnect(conn, Instant::now()));
+    tracing::debug!("disconnected");
+}

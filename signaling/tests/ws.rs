@@ -1,0 +1,221 @@
+//! Real websockets on 127.0.0.1: a fake master and browser-like clients talk to the
+//! signaling server through `/signal`, and `/status` reports the load.
+
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use futures_util::{SinkExt, StreamExt};
+use nephele_signaling::{HubConfig, serve};
+use serde_json::{Value, json};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::{MaybeTlsStream, WebSocketStream, connect_async};
+
+type Ws = WebSocketStream<MaybeTlsStream<TcpStream>>;
+
+async fn start() -> SocketAddr {
+    start_with(HubConfig {
+        max_message_bytes: 4096,
+        ..HubConfig::default()
+    })
+    .await
+}
+
+async fn start_with(cfg: HubConfig) -> SocketAddr {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(serve(listener, cfg));
+    addr
+}
+
+async fn connect(addr: SocketAddr) -> Ws {
+    connect_async(format!("ws://{addr}/signal"))
+        .await
+        .unwrap()
+        .0
+}
+
+async fn send(ws: &mut Ws, msg: Value) {
+    ws.send(Message::text(msg.to_string())).await.unwrap();
+}
+
+async fn recv(ws: &mut Ws) -> Value {
+    loop {
+        let msg = tokio::time::timeout(Duration::from_secs(5), ws.next())
+            .await
+            .expect("timed out")
+            .unwrap()
+            .unwrap();
+        if let Message::Text(text) = msg {
+            return serde_json::from_str(text.as_str()).unwrap();
+        }
+    }
+}
+
+async fn join(addr: SocketAddr, master: &mut Ws) -> (Ws, String) {
+    let mut client = connect(addr).await;
+    send(
+        &mut client,
+        json!({"type":"join","scene":"cubes","mode":"vr","width":1920,"height":1080,"fps":72}),
+    )
+    .await;
+    let joined = recv(&mut client).await;
+    assert_eq!(joined["type"], "joined", "{joined}");
+    assert_eq!(joined["master"], "farm-1");
+    let session = joined["session"].as_str().unwrap().to_owned();
+    assert_eq!(
+        recv(master).await,
+        json!({"type":"join","session":session,"scene":"cubes","mode":"vr","width":1920,"height":1080,"fps":72})
+    );
+    (client, session)
+}
+
+/// Offer → answer and ICE both ways for one session.
+async fn round_trip(client: &mut Ws, master: &mut Ws, session: &str) {
+    let sdp = format!("v=0 offer for {session}");
+    send(client, json!({"type":"offer","sdp":sdp})).await;
+    assert_eq!(
+        recv(master).await,
+        json!({"type":"offer","session":session,"sdp":sdp})
+    );
+    send(
+        master,
+        json!({"type":"answer","session":session,"sdp":"v=0 answer"}),
+    )
+    .await;
+    assert_eq!(
+        recv(client).await,
+        json!({"type":"answer","sdp":"v=0 answer"})
+    );
+    let cand = json!({"candidate":"candidate:0 1 UDP 2122252543 192.168.1.5 50000 typ host","sdpMid":"0","sdpMLineIndex":0});
+    send(client, json!({"type":"ice","candidate":cand})).await;
+    assert_eq!(
+        recv(master).await,
+        json!({"type":"ice","session":session,"candidate":cand})
+    );
+    send(
+        master,
+        json!({"type":"ice","session":session,"candidate":cand}),
+    )
+    .await;
+    assert_eq!(recv(client).await, json!({"type":"ice","candidate":cand}));
+}
+
+async fn http_get(addr: SocketAddr, path: &str) -> Value {
+    let mut tcp = TcpStream::connect(addr).await.unwrap();
+    tcp.write_all(
+        format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes(),
+    )
+    .await
+    .unwrap();
+    let mut response = String::new();
+    tcp.read_to_string(&mut response).await.unwrap();
+    assert!(response.starts_with("HTTP/1.1 200"), "{response}");
+    serde_json::from_str(response.split("\r\n\r\n").nth(1).unwrap()).unwrap()
+}
+
+#[tokio::test]
+async fn signaling_over_real_websockets() {
+    let addr = start().await;
+    let mut master = connect(addr).await;
+    send(
+        &mut master,
+        json!({"type":"register","name":"farm-1","capacity":4}),
+    )
+    .await;
+    assert_eq!(
+        recv(&mut master).await,
+        json!({"type":"registered","master":"farm-1"})
+    );
+
+    let (mut first, s1) = join(addr, &mut master).await;
+    round_trip(&mut first, &mut master, &s1).await;
+
+    // Garbage and oversize messages get an error; the session keeps working.
+    first
+        .send(Message::text("{\"type\": \"offer\", "))
+        .await
+        .unwrap();
+    assert_eq!(recv(&mut first).await["code"], "bad_message");
+    send(&mut first, json!({"type":"offer","sdp":"x".repeat(5000)})).await;
+    assert_eq!(recv(&mut first).await["code"], "too_large");
+    round_trip(&mut first, &mut master, &s1).await;
+
+    // A second client is unaffected by the first one's garbage.
+    let (mut second, s2) = join(addr, &mut master).await;
+    first.send(Message::text("garbage")).await.unwrap();
+    assert_eq!(recv(&mut first).await["code"], "bad_message");
+    round_trip(&mut second, &mut master, &s2).await;
+    round_trip(&mut first, &mut master, &s1).await;
+
+    let status = http_get(addr, "/status").await;
+    assert_eq!(
+        status,
+        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2}],"clients":2,"sessions":2})
+    );
+
+    // A client that goes away frees its slot and the master hears `leave`.
+    first.close(None).await.unwrap();
+    assert_eq!(
+        recv(&mut master).await,
+        json!({"type":"leave","session":s1})
+    );
+    // The master ending a session reaches its client.
+    send(
+        &mut master,
+        json!({"type":"end","session":s2,"reason":"bye"}),
+    )
+    .await;
+    assert_eq!(
+        recv(&mut second).await,
+        json!({"type":"ended","reason":"bye"})
+    );
+
+    // A master that disconnects is reported to its clients.
+    let (mut third, _) = join(addr, &mut master).await;
+    master.close(None).await.unwrap();
+    let lost = recv(&mut third).await;
+    assert_eq!(
+        (lost["type"].as_str(), lost["code"].as_str()),
+        (Some("error"), Some("master_lost")),
+        "{lost}"
+    );
+    send(
+        &mut third,
+        json!({"type":"join","scene":"cubes","mode":"ar","width":640,"height":480,"fps":30}),
+    )
+    .await;
+    assert_eq!(recv(&mut third).await["code"], "no_capacity");
+}
+
+#[tokio::test]
+async fn silent_master_times_out() {
+    let addr = start_with(HubConfig {
+        heartbeat_timeout: Duration::from_millis(500),
+        ..HubConfig::default()
+    })
+    .await;
+    let mut master = connect(addr).await;
+    send(
+        &mut master,
+        json!({"type":"register","name":"farm-1","capacity":1}),
+    )
+    .await;
+    assert_eq!(recv(&mut master).await["type"], "registered");
+    let (mut client, _) = join(addr, &mut master).await;
+    // Heartbeats keep the master alive past the timeout...
+    for _ in 0..8 {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        send(&mut master, json!({"type":"heartbeat","sessions":1})).await;
+    }
+    assert_eq!(http_get(addr, "/status").await["masters"][0]["sessions"], 1);
+    // ...and silence drops it: the master is told and closed, the client hears `master_lost`.
+    assert_eq!(recv(&mut master).await["code"], "master_lost");
+    assert!(matches!(
+        master.next().await,
+        Some(Ok(Message::Close(_))) | None
+    ));
+    assert_eq!(recv(&mut client).await["code"], "master_lost");
+    assert_eq!(http_get(addr, "/status").await["masters"], json!([]));
+}
