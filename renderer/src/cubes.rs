@@ -76,20 +76,26 @@ impl TextureCubes {
     /// Trilinear lookup at an object-space point; zero in empty cells and outside the box
     /// (clamped to the border cell, as the GPU kernel does).
     pub fn sample<const C: usize>(&self, p: Vec3) -> [f32; C] {
-        debug_assert_eq!(C, self.channels as usize);
-        let r = self.brick as f32;
         let g = self.to_fine(p);
-        let cell = (g / r).floor().clamp(Vec3::ZERO, Vec3::splat(self.grid as f32 - 1.0));
-        let u = (g - cell * r).clamp(Vec3::ZERO, Vec3::splat(r));
+        let cell = (g / self.brick as f32).floor().clamp(Vec3::ZERO, Vec3::splat(self.grid as f32 - 1.0));
         let brick = self.brick_at(cell.as_uvec3());
         if brick < 0 {
             return [0.0; C];
         }
+        self.sample_in_brick(brick as usize, cell, g)
+    }
+
+    /// Trilinear lookup of fine-grid point `g` in the brick of index cell `cell` (the march
+    /// already knows both); `g` is clamped into the brick.
+    pub fn sample_in_brick<const C: usize>(&self, brick: usize, cell: Vec3, g: Vec3) -> [f32; C] {
+        debug_assert_eq!(C, self.channels as usize);
+        let r = self.brick as f32;
+        let u = (g - cell * r).clamp(Vec3::ZERO, Vec3::splat(r));
         let base = u.floor().min(Vec3::splat(r - 1.0));
         let f = u - base;
         let base = base.as_uvec3();
         let e = self.brick as usize + 1;
-        let brick_start = brick as usize * self.brick_corners();
+        let brick_start = brick * self.brick_corners();
         let mut out = [0.0; C];
         for corner in 0..8u32 {
             let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);

@@ -4,7 +4,7 @@
 //!
 //! 1. clip the object-space ray to the box → `[t0, t1]`;
 //! 2. DDA over the density index grid (Amanatides & Woo), fixed samples `t_k = t0 + (k+½)δ`
-//!    only in occupied cells; `α_k = 1 − exp(−σ_k δ)`, `w_k = T_k α_k`; the hit is the sample
+//!    only in occupied cells, each read from the brick of the cell the DDA is in; `α_k = 1 − exp(−σ_k δ)`, `w_k = T_k α_k`; the hit is the sample
 //!    of largest weight, `α_c = 1 − T`; stop once `T < early_stop` (`α_c` then within
 //!    `early_stop` of `1 − T_end`) or, if enabled, `T < stop_ratio·w_max` (the hit stays exact:
 //!    no later weight can exceed `T`; `α_c` may fall short);
@@ -112,12 +112,15 @@ pub fn march(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSett
             break;
         }
         let t_exit = t_max.min_element().min(t1);
-        if density.brick_at(cell.as_uvec3()) >= 0 {
+        let brick = density.brick_at(cell.as_uvec3());
+        if brick >= 0 {
+            // Samples in this cell read its brick (the DDA's cell, not a re-derived one).
+            let cell_f = cell.as_vec3();
             let k_a = k_next.max(((t_enter - t0) / step - 0.5).ceil() as i32);
             let k_b = ((t_exit - t0) / step - 0.5).ceil() as i32;
             for k in k_a..k_b {
                 let t = t0 + (k as f32 + 0.5) * step;
-                let sigma = density.sample::<1>(o + t * d)[0];
+                let sigma = density.sample_in_brick::<1>(brick as usize, cell_f, density.to_fine(o + t * d))[0];
                 let alpha = 1.0 - (-sigma * step).exp();
                 let w = transmittance * alpha;
                 if w > w_max {

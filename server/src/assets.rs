@@ -31,7 +31,8 @@ pub fn load_asset(spec: &str) -> Result<Arc<Asset>> {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum BackendChoice {
-    /// The GPU if an adapter exists (software lavapipe counts), else the CPU with a warning.
+    /// A hardware GPU if there is one; else the CPU reference, which outruns software Vulkan
+    /// (lavapipe) on the same cores — see `nephele bench render`.
     Auto,
     Gpu,
     Cpu,
@@ -42,7 +43,11 @@ pub fn make_backend(choice: BackendChoice) -> Result<Box<dyn Backend>> {
         BackendChoice::Cpu => Ok(Box::new(CpuBackend)),
         BackendChoice::Gpu => Ok(Box::new(GpuBackend::new()?)),
         BackendChoice::Auto => match GpuBackend::new() {
-            Ok(gpu) => Ok(Box::new(gpu)),
+            Ok(gpu) if gpu.ctx.info.device_type != nephele_renderer::gpu::DeviceType::Cpu => Ok(Box::new(gpu)),
+            Ok(gpu) => {
+                eprintln!("note: the only GPU adapter is software ({}); rendering on the CPU, which is faster here (force with --backend gpu)", gpu.ctx.describe());
+                Ok(Box::new(CpuBackend))
+            }
             Err(e) => {
                 eprintln!("warning: {e}; using the CPU reference renderer (slow)");
                 Ok(Box::new(CpuBackend))

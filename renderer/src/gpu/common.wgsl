@@ -52,6 +52,13 @@ struct Counter {
 @group(0) @binding(7) var<storage, read_write> hits: array<Hit>;
 @group(0) @binding(8) var<storage, read_write> counter: Counter;
 @group(0) @binding(9) var<storage, read_write> dispatch_args: array<u32, 3>;
+// Specular MLP as vec4 rows (inputs padded to `mlp_in4` vec4s): uniform loads broadcast to
+// every lane, which is what makes the per-ray network cheap. Layout in `gpu::pack_mlp`.
+const MLP_VEC4S: u32 = 2145u;
+struct Mlp {
+    w: array<vec4<f32>, MLP_VEC4S>,
+}
+@group(0) @binding(10) var<uniform> mlp: Mlp;
 
 // Linear invocation index of a 2D dispatch of 64-wide workgroups.
 fn linear_id(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {

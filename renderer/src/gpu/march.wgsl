@@ -3,22 +3,18 @@
 // max-weight hit and coarse opacity with the exact early stop. Misses get the background;
 // hits are appended to `hits` for the shading pass. Mirrors `model::march`.
 
-fn density_at(p: vec3<f32>) -> f32 {
+// Density at `p`, read from `brick` whose atlas texel origin is `origin` and whose index cell
+// is `cell` (model.rs `sample_in_brick`).
+fn density_in_brick(origin: vec3<f32>, cell: vec3<f32>, p: vec3<f32>) -> f32 {
     let r = f32(params.density_brick);
     let g = (p - params.bounds_min) / params.bounds_size * f32(params.density_grid * params.density_brick);
-    let cell = clamp(floor(g / r), vec3<f32>(0.0), vec3<f32>(f32(params.density_grid) - 1.0));
     let u = clamp(g - cell * r, vec3<f32>(0.0), vec3<f32>(r));
-    let c = vec3<u32>(cell);
-    let b = params.density_grid;
-    let brick = bitcast<i32>(asset[params.off_density_index + c.x + b * (c.y + b * c.z)]);
-    if brick < 0 { return 0.0; }
-    let coord = atlas_coord(u32(brick), u, r, params.density_atlas_bricks, params.density_atlas_size);
-    return textureSampleLevel(density_atlas, atlas_sampler, coord, 0.0).r;
+    return textureSampleLevel(density_atlas, atlas_sampler, (origin + u + 0.5) / params.density_atlas_size, 0.0).r;
 }
 
-fn occupied(cell: vec3<i32>) -> bool {
+fn brick_of(cell: vec3<i32>) -> i32 {
     let b = i32(params.density_grid);
-    return bitcast<i32>(asset[params.off_density_index + u32(cell.x + b * (cell.y + b * cell.z))]) >= 0;
+    return bitcast<i32>(asset[params.off_density_index + u32(cell.x + b * (cell.y + b * cell.z))]);
 }
 
 struct March {
@@ -73,12 +69,17 @@ fn march(o_in: vec3<f32>, d_in: vec3<f32>) -> March {
     for (var it = 0; it < 3 * b + 3; it++) {
         if done || t_enter >= t1 { break; }
         let t_exit = min(min(min(t_max.x, t_max.y), t_max.z), t1);
-        if occupied(cell) {
+        let brick = brick_of(cell);
+        if brick >= 0 {
+            let bu = u32(brick);
+            let nb = params.density_atlas_bricks;
+            let origin = vec3<f32>(vec3<u32>(bu % nb.x, (bu / nb.x) % nb.y, bu / (nb.x * nb.y))) * f32(params.density_brick + 1u);
+            let cell_f = vec3<f32>(cell);
             let k_a = max(k_next, i32(ceil((t_enter - t0) / step - 0.5)));
             let k_b = i32(ceil((t_exit - t0) / step - 0.5));
             for (var k = k_a; k < k_b; k++) {
                 let t = t0 + (f32(k) + 0.5) * step;
-                let sigma = density_at(o + t * d);
+                let sigma = density_in_brick(origin, cell_f, o + t * d);
                 let alpha = 1.0 - exp(-sigma * step);
                 let w = transmittance * alpha;
                 if w > w_max {

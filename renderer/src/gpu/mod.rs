@@ -10,6 +10,7 @@ use std::{sync::Arc, time::Instant};
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
+pub use wgpu::DeviceType;
 
 use crate::{
     asset::Asset,
@@ -227,6 +228,7 @@ struct GpuPrepared {
     ctx: Arc<GpuContext>,
     asset: Arc<Asset>,
     words: wgpu::Buffer,
+    mlp: wgpu::Buffer,
     density: Atlas,
     diffuse: Atlas,
     /// Params with the per-render fields left zero.
@@ -267,9 +269,11 @@ impl Backend for GpuBackend {
             })
             .collect();
         let off_psh_values = push(&mut words, &packed);
-        let m = &a.mlp;
-        let mlp: Vec<f32> = [&m.w0, &m.b0, &m.w1, &m.b1, &m.w2, &m.b2].into_iter().flatten().copied().collect();
-        let off_mlp = push(&mut words, bytemuck::cast_slice(&mlp));
+        let mlp = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("mlp"),
+            contents: bytemuck::cast_slice(&pack_mlp(&a.mlp)),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
         let limit = ctx.device.limits().max_storage_buffer_binding_size as usize;
         if words.len() * 4 > limit {
             return Err(RenderError::Gpu(format!("asset needs {} MiB of storage; the adapter allows {}", words.len() >> 18, limit >> 20)));
@@ -307,14 +311,42 @@ impl Backend for GpuBackend {
             off_psh_keys,
             off_psh_offsets,
             off_psh_values,
-            off_mlp,
+            off_mlp: 0,
             view_count: 0,
             chunk_start: 0,
             chunk_len: 0,
             _pad: [0; 3],
         };
-        Ok(Box::new(GpuPrepared { ctx, asset, words, density, diffuse, base }))
+        Ok(Box::new(GpuPrepared { ctx, asset, words, mlp, density, diffuse, base }))
     }
+}
+
+/// vec4s of `Mlp` in common.wgsl.
+pub const MLP_VEC4S: usize = 2145;
+
+/// The specular MLP as vec4 rows for the uniform buffer: w0 (64 × in4, inputs zero-padded to a
+/// multiple of 4), b0 (16), w1 (64 × 16), b1 (16), w2 (4 × 16), b2 (1); zero-filled to
+/// [`MLP_VEC4S`].
+pub fn pack_mlp(m: &crate::mlp::SpecularMlp) -> Vec<[f32; 4]> {
+    use crate::mlp::HIDDEN;
+    let in4 = m.input.div_ceil(4);
+    let mut out = Vec::with_capacity(MLP_VEC4S);
+    let rows = |out: &mut Vec<[f32; 4]>, w: &[f32], cols: usize| {
+        for row in w.chunks_exact(cols) {
+            for q in 0..cols.div_ceil(4) {
+                out.push(std::array::from_fn(|i| row.get(4 * q + i).copied().unwrap_or(0.0)));
+            }
+        }
+    };
+    rows(&mut out, &m.w0, m.input);
+    debug_assert_eq!(out.len(), HIDDEN * in4);
+    rows(&mut out, &m.b0, HIDDEN);
+    rows(&mut out, &m.w1, HIDDEN);
+    rows(&mut out, &m.b1, HIDDEN);
+    rows(&mut out, &m.w2, HIDDEN);
+    rows(&mut out, &m.b2, 4);
+    out.resize(MLP_VEC4S, [0.0; 4]);
+    out
 }
 
 fn dispatch_2d(groups: u32) -> (u32, u32) {
@@ -411,10 +443,11 @@ impl PreparedAsset for GpuPrepared {
             (7, hits.as_entire_binding()),
             (8, counter.as_entire_binding()),
             (9, args.as_entire_binding()),
+            (10, self.mlp.as_entire_binding()),
         ];
         let march_bg = self.bind_group(&ctx.march, &[0, 1, 2, 3, 4, 6, 7, 8], &resources);
         let args_bg = self.bind_group(&ctx.args, &[8, 9], &resources);
-        let shade_bg = self.bind_group(&ctx.shade, &[0, 1, 2, 4, 5, 6, 7, 8], &resources);
+        let shade_bg = self.bind_group(&ctx.shade, &[0, 1, 2, 4, 5, 6, 7, 8, 10], &resources);
 
         let mut out_pixels: Vec<[u32; 2]> = Vec::with_capacity(total as usize);
         let mut stats = RenderStats { rays: total, ..Default::default() };

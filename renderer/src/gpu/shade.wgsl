@@ -3,10 +3,6 @@
 // → E_s; SH degree 4 → E_v; specular MLP [E_s, E_v, α_c] → 64 → 64 → 4; composite over the
 // view's background. Mirrors `model::shade`.
 
-fn asset_f32(i: u32) -> f32 {
-    return bitcast<f32>(asset[i]);
-}
-
 fn psh_find(p: vec3<u32>) -> i32 {
     let m = params.table_edge;
     let r = params.offset_edge;
@@ -92,31 +88,34 @@ fn shade_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     x[nf + 15u] = 0.59004358992664352 * d.x * (-xx + 3.0 * yy);
     x[nf + 16u] = h.alpha_c;
 
-    // Specular MLP; weights row-major: w0 (64×in), b0, w1 (64×64), b1, w2 (4×64), b2.
-    let n_in = params.mlp_input;
-    let w0 = params.off_mlp;
-    let b0 = w0 + HIDDEN * n_in;
-    let w1 = b0 + HIDDEN;
-    let b1 = w1 + HIDDEN * HIDDEN;
-    let w2 = b1 + HIDDEN;
-    let b2 = w2 + 4u * HIDDEN;
-    var h0: array<f32, 64>;
+    // Specular MLP in vec4s: w0 (64 rows × in4), b0 (16), w1 (64 × 16), b1 (16), w2 (4 × 16), b2 (1).
+    let in4 = (params.mlp_input + 3u) / 4u;
+    var x4: array<vec4<f32>, 16>;
+    for (var q = 0u; q < in4; q++) {
+        x4[q] = vec4<f32>(x[4u * q], x[4u * q + 1u], x[4u * q + 2u], x[4u * q + 3u]);
+    }
+    let b0 = HIDDEN * in4;
+    let w1 = b0 + 16u;
+    let b1 = w1 + HIDDEN * 16u;
+    let w2 = b1 + 16u;
+    let b2 = w2 + 64u;
+    var h0: array<vec4<f32>, 16>;
     for (var j = 0u; j < HIDDEN; j++) {
         var acc = 0.0;
-        for (var k = 0u; k < n_in; k++) { acc += asset_f32(w0 + j * n_in + k) * x[k]; }
-        h0[j] = max(asset_f32(b0 + j) + acc, 0.0);
+        for (var q = 0u; q < in4; q++) { acc += dot(mlp.w[j * in4 + q], x4[q]); }
+        h0[j / 4u][j % 4u] = max(mlp.w[b0 + j / 4u][j % 4u] + acc, 0.0);
     }
-    var h1: array<f32, 64>;
+    var h1: array<vec4<f32>, 16>;
     for (var j = 0u; j < HIDDEN; j++) {
         var acc = 0.0;
-        for (var k = 0u; k < HIDDEN; k++) { acc += asset_f32(w1 + j * HIDDEN + k) * h0[k]; }
-        h1[j] = max(asset_f32(b1 + j) + acc, 0.0);
+        for (var q = 0u; q < 16u; q++) { acc += dot(mlp.w[w1 + j * 16u + q], h0[q]); }
+        h1[j / 4u][j % 4u] = max(mlp.w[b1 + j / 4u][j % 4u] + acc, 0.0);
     }
-    var o: vec4<f32>;
+    var o = mlp.w[b2];
     for (var j = 0u; j < 4u; j++) {
         var acc = 0.0;
-        for (var k = 0u; k < HIDDEN; k++) { acc += asset_f32(w2 + j * HIDDEN + k) * h1[k]; }
-        o[j] = asset_f32(b2 + j) + acc;
+        for (var q = 0u; q < 16u; q++) { acc += dot(mlp.w[w2 + j * 16u + q], h1[q]); }
+        o[j] += acc;
     }
     let c_s = vec3<f32>(sigmoid(o.x), sigmoid(o.y), sigmoid(o.z));
     let alpha = sigmoid(o.w);
