@@ -41,6 +41,15 @@ enum Command {
         #[arg(default_value = DEFAULT_ASSET)]
         asset: String,
     },
+    /// Run the signaling server alone (pairs clients with master nodes, relays SDP/ICE).
+    Signal {
+        /// Address to listen on; port 0 picks a free port (printed).
+        #[arg(long, default_value = "127.0.0.1:8000")]
+        listen: String,
+        /// Shared token that clients and masters must present.
+        #[arg(long)]
+        token: Option<String>,
+    },
     /// Benchmarks that print tables.
     Bench {
         #[command(subcommand)]
@@ -130,6 +139,16 @@ fn main() -> Result<()> {
             let a = load_asset(&asset)?;
             println!("name: {}\nbounds: {:?}\nstep: {}\nprovenance: {}\n\n{}", a.name, a.bounds, a.march.step, a.provenance, a.memory());
             Ok(())
+        }
+        Some(Command::Signal { listen, token }) => {
+            let rt = tokio::runtime::Runtime::new()?;
+            rt.block_on(async {
+                let listener = tokio::net::TcpListener::bind(&listen).await.with_context(|| format!("binding {listen}"))?;
+                let addr = listener.local_addr()?;
+                println!("signaling on ws://{addr}/signal (status: http://{addr}/status)");
+                let cfg = nephele_signaling::HubConfig { token, ..Default::default() };
+                nephele_signaling::serve(listener, cfg).await.context("signaling server failed")
+            })
         }
         Some(Command::Bench { what: BenchCommand::Render { asset, sizes, backends, runs, distance } }) => {
             let a = load_asset(&asset)?;
