@@ -99,3 +99,26 @@ fn settings_knobs_reach_the_gpu() {
         check(&format!("{settings:?}"), &common::diff(&c.frames[0], &g.frames[0], 4, 2.0 * asset.march.step * settings.step_scale));
     }
 }
+
+/// Buffers are reused between renders: a small batch after a large one, and a larger one
+/// after that, give the same frames as fresh renders.
+#[test]
+fn reused_buffers_give_the_same_frames() {
+    let Some(gpu) = common::gpu() else { return };
+    let asset = common::fixture();
+    let settings = RenderSettings::default();
+    let k = |w, h| Intrinsics::from_fov_x(w, h, 0.7);
+    let big = [
+        ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 10.0, 20.0, k(120, 90))),
+        ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 80.0, 20.0, k(64, 64))),
+    ];
+    let small = [ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 200.0, 5.0, k(33, 17)))];
+    let bigger = [big[0], big[1], small[0], ViewRequest::new(View::orbit(DVec3::ZERO, 3.0, 300.0, 40.0, k(160, 160)))];
+    let shared = gpu.prepare(asset.clone()).unwrap();
+    for batch in [&big[..], &small[..], &bigger[..], &small[..]] {
+        let reused = shared.render(batch, &settings).unwrap();
+        let fresh = gpu.prepare(asset.clone()).unwrap().render(batch, &settings).unwrap();
+        assert_eq!(reused.frames, fresh.frames);
+        assert_eq!(reused.stats.hits, fresh.stats.hits);
+    }
+}

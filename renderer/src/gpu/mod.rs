@@ -233,6 +233,7 @@ struct GpuPrepared {
     diffuse: Atlas,
     /// Params with the per-render fields left zero.
     base: Params,
+    scratch: std::sync::Mutex<Option<Scratch>>,
 }
 
 impl Backend for GpuBackend {
@@ -317,7 +318,7 @@ impl Backend for GpuBackend {
             chunk_len: 0,
             _pad: [0; 3],
         };
-        Ok(Box::new(GpuPrepared { ctx, asset, words, mlp, density, diffuse, base }))
+        Ok(Box::new(GpuPrepared { ctx, asset, words, mlp, density, diffuse, base, scratch: Default::default() }))
     }
 }
 
@@ -353,7 +354,54 @@ fn dispatch_2d(groups: u32) -> (u32, u32) {
     (groups.clamp(1, 65535), groups.div_ceil(65535).max(1))
 }
 
+/// Per-render buffers sized for `views` views and `chunk` pixels per chunk, with their bind groups.
+struct Scratch {
+    views: usize,
+    chunk: u32,
+    views_buf: wgpu::Buffer,
+    params_buf: wgpu::Buffer,
+    pixels: wgpu::Buffer,
+    counter: wgpu::Buffer,
+    args: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    march_bg: wgpu::BindGroup,
+    args_bg: wgpu::BindGroup,
+    shade_bg: wgpu::BindGroup,
+}
+
 impl GpuPrepared {
+    fn make_scratch(&self, views: usize, chunk: u32) -> Scratch {
+        let ctx = &*self.ctx;
+        let buffer = |label, size: u64, usage| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size: size.max(16), usage, mapped_at_creation: false })
+        };
+        use wgpu::BufferUsages as U;
+        let views_buf = buffer("views", (views * std::mem::size_of::<GpuView>()) as u64, U::STORAGE | U::COPY_DST);
+        let params_buf = buffer("params", std::mem::size_of::<Params>() as u64, U::UNIFORM | U::COPY_DST);
+        let pixels = buffer("pixels", chunk as u64 * 8, U::STORAGE | U::COPY_SRC);
+        let hits = buffer("hits", chunk as u64 * HIT_BYTES, U::STORAGE);
+        let counter = buffer("counter", 16, U::STORAGE | U::COPY_SRC | U::COPY_DST);
+        let args = buffer("args", 16, U::STORAGE | U::INDIRECT);
+        let readback = buffer("readback", chunk as u64 * 8 + 16, U::MAP_READ | U::COPY_DST);
+        let resources = [
+            (0, params_buf.as_entire_binding()),
+            (1, views_buf.as_entire_binding()),
+            (2, self.words.as_entire_binding()),
+            (3, wgpu::BindingResource::TextureView(&self.density.view)),
+            (4, wgpu::BindingResource::Sampler(&ctx.sampler)),
+            (5, wgpu::BindingResource::TextureView(&self.diffuse.view)),
+            (6, pixels.as_entire_binding()),
+            (7, hits.as_entire_binding()),
+            (8, counter.as_entire_binding()),
+            (9, args.as_entire_binding()),
+            (10, self.mlp.as_entire_binding()),
+        ];
+        let march_bg = self.bind_group(&ctx.march, &[0, 1, 2, 3, 4, 6, 7, 8], &resources);
+        let args_bg = self.bind_group(&ctx.args, &[8, 9], &resources);
+        let shade_bg = self.bind_group(&ctx.shade, &[0, 1, 2, 4, 5, 6, 7, 8, 10], &resources);
+        Scratch { views, chunk, views_buf, params_buf, pixels, counter, args, readback, march_bg, args_bg, shade_bg }
+    }
+
     fn bind_group(&self, pipeline: &wgpu::ComputePipeline, used: &[u32], resources: &[(u32, wgpu::BindingResource<'_>)]) -> wgpu::BindGroup {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = resources
             .iter()
@@ -402,52 +450,16 @@ impl PreparedAsset for GpuPrepared {
         if total > u32::MAX as u64 / 2 {
             return Err(RenderError::BadSettings(format!("batch of {total} pixels is too large")));
         }
-        let views_buf = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("views"),
-            contents: bytemuck::cast_slice(&gpu_views),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
         let chunk = (total as u32).min(CHUNK_PIXELS);
-        let storage = |label, size: u64, extra| {
-            dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: size.max(16),
-                usage: wgpu::BufferUsages::STORAGE | extra,
-                mapped_at_creation: false,
-            })
-        };
-        let pixels = storage("pixels", chunk as u64 * 8, wgpu::BufferUsages::COPY_SRC);
-        let hits = storage("hits", chunk as u64 * HIT_BYTES, wgpu::BufferUsages::empty());
-        let counter = storage("counter", 16, wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST);
-        let args = storage("args", 16, wgpu::BufferUsages::INDIRECT);
-        let readback = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size: chunk as u64 * 8 + 16,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let params_buf = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("params"),
-            size: std::mem::size_of::<Params>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let resources = [
-            (0, params_buf.as_entire_binding()),
-            (1, views_buf.as_entire_binding()),
-            (2, self.words.as_entire_binding()),
-            (3, wgpu::BindingResource::TextureView(&self.density.view)),
-            (4, wgpu::BindingResource::Sampler(&ctx.sampler)),
-            (5, wgpu::BindingResource::TextureView(&self.diffuse.view)),
-            (6, pixels.as_entire_binding()),
-            (7, hits.as_entire_binding()),
-            (8, counter.as_entire_binding()),
-            (9, args.as_entire_binding()),
-            (10, self.mlp.as_entire_binding()),
-        ];
-        let march_bg = self.bind_group(&ctx.march, &[0, 1, 2, 3, 4, 6, 7, 8], &resources);
-        let args_bg = self.bind_group(&ctx.args, &[8, 9], &resources);
-        let shade_bg = self.bind_group(&ctx.shade, &[0, 1, 2, 4, 5, 6, 7, 8, 10], &resources);
+        // Per-frame buffers and bind groups are kept between calls and regrown only when a
+        // batch needs more room: streaming renders the same sizes every frame.
+        let mut scratch_slot = self.scratch.lock().unwrap_or_else(|e| e.into_inner());
+        if !scratch_slot.as_ref().is_some_and(|s| s.views >= gpu_views.len() && s.chunk >= chunk) {
+            *scratch_slot = Some(self.make_scratch(gpu_views.len(), chunk));
+        }
+        let scratch = scratch_slot.as_ref().expect("scratch was just made");
+        ctx.queue.write_buffer(&scratch.views_buf, 0, bytemuck::cast_slice(&gpu_views));
+        let Scratch { params_buf, pixels, counter, args, readback, march_bg, args_bg, shade_bg, .. } = scratch;
 
         let mut out_pixels: Vec<[u32; 2]> = Vec::with_capacity(total as usize);
         let mut stats = RenderStats { rays: total, ..Default::default() };
@@ -464,18 +476,18 @@ impl PreparedAsset for GpuPrepared {
                 chunk_len,
                 ..self.base
             };
-            ctx.queue.write_buffer(&params_buf, 0, bytemuck::bytes_of(&params));
+            ctx.queue.write_buffer(params_buf, 0, bytemuck::bytes_of(&params));
             let t0 = Instant::now();
             let mut enc = dev.create_command_encoder(&Default::default());
-            enc.clear_buffer(&counter, 0, None);
+            enc.clear_buffer(counter, 0, None);
             {
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 pass.set_pipeline(&ctx.march);
-                pass.set_bind_group(0, &march_bg, &[]);
+                pass.set_bind_group(0, march_bg, &[]);
                 let (x, y) = dispatch_2d(chunk_len.div_ceil(64));
                 pass.dispatch_workgroups(x, y, 1);
                 pass.set_pipeline(&ctx.args);
-                pass.set_bind_group(0, &args_bg, &[]);
+                pass.set_bind_group(0, args_bg, &[]);
                 pass.dispatch_workgroups(1, 1, 1);
             }
             ctx.queue.submit([enc.finish()]);
@@ -485,11 +497,11 @@ impl PreparedAsset for GpuPrepared {
             {
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 pass.set_pipeline(&ctx.shade);
-                pass.set_bind_group(0, &shade_bg, &[]);
-                pass.dispatch_workgroups_indirect(&args, 0);
+                pass.set_bind_group(0, shade_bg, &[]);
+                pass.dispatch_workgroups_indirect(args, 0);
             }
-            enc.copy_buffer_to_buffer(&pixels, 0, &readback, 0, chunk_len as u64 * 8);
-            enc.copy_buffer_to_buffer(&counter, 0, &readback, chunk_len as u64 * 8, 16);
+            enc.copy_buffer_to_buffer(pixels, 0, readback, 0, chunk_len as u64 * 8);
+            enc.copy_buffer_to_buffer(counter, 0, readback, chunk_len as u64 * 8, 16);
             ctx.queue.submit([enc.finish()]);
             self.wait()?;
             let t2 = Instant::now();
@@ -498,13 +510,14 @@ impl PreparedAsset for GpuPrepared {
             let slice = readback.slice(..chunk_len as u64 * 8 + 16);
             slice.map_async(wgpu::MapMode::Read, |_| {});
             self.wait()?;
-            {
-                let data = slice.get_mapped_range().map_err(gpu_err)?;
+            // Copy out, then unmap even on error: the buffer is reused by the next render.
+            let hits = slice.get_mapped_range().map(|data| {
                 let (px, tail) = data.split_at(chunk_len as usize * 8);
                 out_pixels.extend_from_slice(bytemuck::cast_slice(px));
-                stats.hits += u32::from_le_bytes(tail[..4].try_into().unwrap()) as u64;
-            }
+                u32::from_le_bytes([tail[0], tail[1], tail[2], tail[3]]) as u64
+            });
             readback.unmap();
+            stats.hits += hits.map_err(gpu_err)?;
             chunk_start += chunk_len;
         }
         let mut frames = Vec::with_capacity(views.len());
