@@ -3,4 +3,12 @@
 
 pub mod assets;
 pub mod bench;
+pub mod client;
 pub mod encode;
+pub mod farm;
+pub mod master;
+pub mod replay;
+pub mod rtc;
+pub mod session;
+pub mod web;
+pub mod wire;

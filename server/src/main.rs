@@ -5,12 +5,21 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use glam::{DMat4, DVec3};
+use std::sync::Arc;
+
 use nephele::{
     assets::{BackendChoice, DEFAULT_ASSET, load_asset, make_backend, parse_color, parse_size},
     bench,
+    farm::Farm,
+    client::ClientOptions,
+    master::{self, MasterConfig},
+    replay,
+    rtc::RtcConfig,
+    web,
 };
+use nephele_signaling::Mode;
 use nephele_renderer::{
-    Intrinsics, RenderSettings, View, ViewRequest,
+    CpuBackend, Backend as _, Intrinsics, RenderSettings, View, ViewRequest,
     procedural::{self, ProceduralConfig, Scene},
 };
 
@@ -50,6 +59,28 @@ enum Command {
         #[arg(long)]
         token: Option<String>,
     },
+    /// The main job: signaling, a master with its render farm, and the web pages in one
+    /// process. Prints the URL to open.
+    Serve(ServeArgs),
+    /// A master node alone, registering with a signaling server (`nephele signal`).
+    Master {
+        /// Signaling websocket, e.g. ws://host:8000/signal.
+        #[arg(long)]
+        signal: String,
+        /// Name shown in signaling's /status.
+        #[arg(long, default_value = "master")]
+        name: String,
+        #[command(flatten)]
+        farm: FarmArgs,
+    },
+    /// A headless streaming client: replays a pose trace through a server and reports
+    /// latency, fps, bitrate and PSNR against a direct render.
+    Replay(ReplayArgs),
+    /// Write the built-in pose traces (orbit, zoom, shake) as JSON into a directory.
+    Traces {
+        #[arg(long, default_value = "examples/traces")]
+        out: PathBuf,
+    },
     /// Benchmarks that print tables.
     Bench {
         #[command(subcommand)]
@@ -57,8 +88,58 @@ enum Command {
     },
 }
 
+#[derive(clap::Args)]
+struct ReplayArgs {
+    /// A trace file (JSON) or a built-in trace: orbit, zoom, shake.
+    #[arg(long, default_value = "orbit")]
+    trace: String,
+    /// Signaling websocket of the server.
+    #[arg(long, default_value = "ws://127.0.0.1:8080/signal")]
+    signal: String,
+    #[arg(long, default_value = "trio")]
+    scene: String,
+    /// viewer or ar.
+    #[arg(long, default_value = "viewer")]
+    mode: String,
+    #[arg(long, default_value = "640x480")]
+    size: String,
+    #[arg(long, default_value_t = 50)]
+    fps: u32,
+    #[arg(long)]
+    token: Option<String>,
+    /// The asset the server streams (e.g. builtin:trio), rendered here for PSNR.
+    #[arg(long)]
+    reference: Option<String>,
+    /// Compare every n-th frame with the reference.
+    #[arg(long, default_value_t = 10)]
+    quality_every: usize,
+    /// Step-size multiplier the server uses (for the reference render).
+    #[arg(long, default_value_t = 1.0)]
+    step_scale: f32,
+    /// Save the decoded frames as PNG here.
+    #[arg(long)]
+    save: Option<PathBuf>,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Per-stage and end-to-end streaming latency through an in-process server and the
+    /// replay client, per frame size.
+    Stream {
+        #[arg(long, default_value = "builtin:trio-small")]
+        asset: String,
+        #[arg(long, default_value = "640x480,1280x720")]
+        sizes: String,
+        #[arg(long, default_value = "orbit")]
+        trace: String,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendChoice,
+        #[arg(long, default_value_t = 50)]
+        fps: u32,
+    },
     /// Ray-march / network / total ms, rays/s and hit fraction per backend and size.
     Render {
         #[arg(long, default_value = DEFAULT_ASSET)]
@@ -75,6 +156,57 @@ enum BenchCommand {
         #[arg(long, default_value_t = 4.0)]
         distance: f64,
     },
+}
+
+#[derive(clap::Args)]
+struct FarmArgs {
+    /// Scenes to serve: `name=asset` or an asset (a .nolf path or builtin:<scene>[-small]);
+    /// repeat for several. The first is the default.
+    #[arg(long = "scene", default_value = DEFAULT_ASSET)]
+    scenes: Vec<String>,
+    #[arg(long, value_enum, default_value = "auto")]
+    backend: BackendChoice,
+    /// Step-size multiplier (speed/accuracy knob).
+    #[arg(long, default_value_t = 1.0)]
+    step_scale: f32,
+    /// Sessions this master accepts at once.
+    #[arg(long, default_value_t = 4)]
+    capacity: u32,
+    /// Shared token for signaling (clients must present it too).
+    #[arg(long)]
+    token: Option<String>,
+    /// Offer loopback ICE candidates only (a browser on this machine, tests).
+    #[arg(long)]
+    loopback_only: bool,
+    /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT).
+    #[arg(long)]
+    public_ip: Vec<String>,
+}
+
+impl FarmArgs {
+    fn load(&self) -> Result<(Arc<Farm>, MasterConfig)> {
+        let backend = make_backend(self.backend)?;
+        let settings = RenderSettings { step_scale: self.step_scale, ..Default::default() };
+        settings.validate().map_err(anyhow::Error::msg)?;
+        eprintln!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name());
+        let farm = Arc::new(Farm::load(&self.scenes, backend.as_ref(), settings)?);
+        let cfg = MasterConfig {
+            name: "local".into(),
+            capacity: self.capacity,
+            token: self.token.clone(),
+            rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
+        };
+        Ok((farm, cfg))
+    }
+}
+
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// HTTP address for the pages and signaling; port 0 picks a free port.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    listen: String,
+    #[command(flatten)]
+    farm: FarmArgs,
 }
 
 #[derive(clap::Args)]
@@ -122,9 +254,14 @@ fn main() -> Result<()> {
     tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).with_writer(std::io::stderr).init();
     match Cli::parse().command {
         None => {
-            // Until streaming lands, the main job renders the default scene.
-            let Some(Command::Render(args)) = Cli::parse_from(["nephele", "render"]).command else { unreachable!() };
-            render(args)
+            let Some(Command::Serve(args)) = Cli::parse_from(["nephele", "serve"]).command else { unreachable!() };
+            serve(args)
+        }
+        Some(Command::Serve(args)) => serve(args),
+        Some(Command::Master { signal, name, farm }) => {
+            let (farm, cfg) = farm.load()?;
+            let cfg = MasterConfig { name, ..cfg };
+            tokio::runtime::Runtime::new()?.block_on(master::run(signal, cfg, farm))
         }
         Some(Command::Render(args)) => render(args),
         Some(Command::Generate { scene, small, out }) => {
@@ -150,6 +287,18 @@ fn main() -> Result<()> {
                 nephele_signaling::serve(listener, cfg).await.context("signaling server failed")
             })
         }
+        Some(Command::Replay(args)) => replay(args),
+        Some(Command::Traces { out }) => {
+            std::fs::create_dir_all(&out)?;
+            for name in replay::BUILTIN_TRACES {
+                let trace = replay::Trace::builtin(name)?;
+                let path = out.join(format!("{name}.json"));
+                std::fs::write(&path, trace.to_json())?;
+                println!("wrote {} ({} poses: {})", path.display(), trace.poses.len(), trace.description);
+            }
+            Ok(())
+        }
+        Some(Command::Bench { what: BenchCommand::Stream { asset, sizes, trace, backend, fps } }) => bench_stream(&asset, &sizes, &trace, backend, fps),
         Some(Command::Bench { what: BenchCommand::Render { asset, sizes, backends, runs, distance } }) => {
             let a = load_asset(&asset)?;
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
@@ -163,6 +312,105 @@ fn main() -> Result<()> {
             Ok(())
         }
     }
+}
+
+fn serve(args: ServeArgs) -> Result<()> {
+    let (farm, cfg) = args.farm.load()?;
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
+        let addr = web::spawn_local(listener, Arc::clone(&farm), cfg).await?;
+        println!("Nephele is serving {} on {} — open http://{addr}/ (AR: http://{addr}/ar.html)", farm.names().join(", "), farm.backend_name);
+        tokio::signal::ctrl_c().await?;
+        eprintln!("stopping");
+        Ok(())
+    })
+}
+
+fn load_trace(spec: &str) -> Result<replay::Trace> {
+    if replay::BUILTIN_TRACES.contains(&spec) { replay::Trace::builtin(spec) } else { replay::Trace::load(std::path::Path::new(spec)) }
+}
+
+fn parse_mode(s: &str) -> Result<Mode> {
+    serde_json::from_value(serde_json::Value::String(s.into())).map_err(|_| anyhow::anyhow!("mode {s:?}: use viewer or ar"))
+}
+
+fn replay(args: ReplayArgs) -> Result<()> {
+    let trace = load_trace(&args.trace)?;
+    let (width, height) = parse_size(&args.size)?;
+    let mode = parse_mode(&args.mode)?;
+    let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
+    let reference = match &args.reference {
+        Some(spec) => Some(CpuBackend.prepare(load_asset(spec)?)?),
+        None => {
+            eprintln!("note: no --reference asset; PSNR is not measured");
+            None
+        }
+    };
+    let opts = replay::ReplayOptions {
+        client: ClientOptions { signal_url: args.signal, scene: args.scene, mode, width, height, fps: args.fps, token: args.token, keep_pixels: reference.is_some() || args.save.is_some() },
+        anchor: None,
+        quality_every: args.quality_every,
+        save_dir: args.save,
+        drain: std::time::Duration::from_secs(1),
+    };
+    let rt = tokio::runtime::Runtime::new()?;
+    let report = rt.block_on(replay::replay(&trace, &opts, reference.as_deref().map(|r| (r, settings))))?;
+    if args.json { println!("{}", serde_json::to_string_pretty(&report)?) } else { print!("{report}") }
+    if report.frames_decoded == 0 {
+        bail!("no frames were decoded");
+    }
+    Ok(())
+}
+
+fn bench_stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u32) -> Result<()> {
+    let trace = load_trace(trace)?;
+    let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
+    let backend = make_backend(backend)?;
+    let settings = RenderSettings::default();
+    let farm = Arc::new(Farm::load(&[format!("bench={asset}")], backend.as_ref(), settings)?);
+    let cfg = MasterConfig { name: "bench".into(), capacity: 4, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] } };
+    let rt = tokio::runtime::Runtime::new()?;
+    let reports = rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = web::spawn_local(listener, farm, cfg).await?;
+        let mut reports = Vec::new();
+        for &(width, height) in &sizes {
+            eprintln!("streaming {} at {width}x{height} ...", trace.name);
+            let opts = replay::ReplayOptions {
+                client: ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: false },
+                anchor: None,
+                quality_every: 0,
+                save_dir: None,
+                drain: std::time::Duration::from_secs(2),
+            };
+            reports.push(replay::replay(&trace, &opts, None).await?);
+        }
+        anyhow::Ok(reports)
+    })?;
+    println!("asset {asset}, backend {}, trace {} ({} poses at {} ms), target {fps} fps\n", backend.name(), trace.name, trace.poses.len(), trace.period_ms);
+    println!("| size | stage | p50 ms | p99 ms |");
+    println!("|---|---|---:|---:|");
+    for r in &reports {
+        let size = format!("{}x{}", r.width, r.height);
+        for (stage, p) in [
+            ("pose receipt → render start (queue)", r.queue_ms),
+            ("render", r.render_ms),
+            ("RGB→I420", r.convert_ms),
+            ("H.264 encode", r.encode_ms),
+            ("RTP send", r.send_ms),
+            ("pose sent → frame info (client)", r.info_latency_ms),
+            ("pose sent → frame decoded (client)", r.latency_ms),
+        ] {
+            println!("| {size} | {stage} | {:.1} | {:.1} |", p.p50, p.p99);
+        }
+    }
+    println!("\n| size | frames | fps | kbit/s | IDR | bad frames |");
+    println!("|---|---:|---:|---:|---:|---:|");
+    for r in &reports {
+        println!("| {}x{} | {} | {:.1} | {:.0} | {} | {} |", r.width, r.height, r.frames_decoded, r.fps, r.bitrate_kbps, r.idr_frames, r.frames_unknown_pose + r.frames_without_pose);
+    }
+    Ok(())
 }
 
 #[derive(serde::Deserialize)]

@@ -1,0 +1,330 @@
+//! A real streaming client in Rust: joins through signaling, offers a recvonly H.264 video
+//! m-line and the unordered `pose` channel (like the browser page), reassembles RTP into
+//! access units on the marker bit, and decodes them with OpenH264 on its own thread.
+//! Used by `nephele replay`, `nephele bench stream` and the end-to-end tests.
+
+use std::{
+    sync::{
+        Arc,
+        atomic::{AtomicU32, Ordering},
+    },
+    time::{Duration, Instant},
+};
+
+use anyhow::{Context, Result, anyhow, bail};
+use bytes::Bytes;
+use futures_util::{SinkExt, StreamExt};
+use nephele_signaling::{Mode, ToClient, ToSignal};
+use openh264::{decoder::Decoder, formats::YUVSource};
+use tokio::sync::mpsc;
+use tokio_tungstenite::tungstenite::Message;
+use webrtc::{
+    data_channel::{RTCDataChannel, data_channel_init::RTCDataChannelInit, data_channel_message::DataChannelMessage},
+    ice_transport::ice_candidate::RTCIceCandidateInit,
+    peer_connection::{RTCPeerConnection, configuration::RTCConfiguration, sdp::session_description::RTCSessionDescription},
+    rtcp::payload_feedbacks::picture_loss_indication::PictureLossIndication,
+    rtp::{codecs::h264::H264Packet, packetizer::Depacketizer},
+    rtp_transceiver::{
+        RTCRtpTransceiverInit, rtp_codec::RTPCodecType, rtp_transceiver_direction::RTCRtpTransceiverDirection,
+    },
+};
+
+use crate::{
+    encode::parse_pose_seq,
+    rtc::{RtcConfig, build_api},
+    wire::{PoseMessage, ToViewer},
+};
+
+/// What to ask signaling for.
+#[derive(Debug, Clone)]
+pub struct ClientOptions {
+    /// e.g. ws://127.0.0.1:8080/signal
+    pub signal_url: String,
+    pub scene: String,
+    pub mode: Mode,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+    pub token: Option<String>,
+    /// Keep decoded pixels (PSNR, saving frames); latency-only runs can skip the copy.
+    pub keep_pixels: bool,
+}
+
+/// One decoded video frame.
+#[derive(Debug, Clone)]
+pub struct ReceivedFrame {
+    /// Pose sequence from the access unit's SEI, if it had one.
+    pub pose_seq: Option<u64>,
+    /// When the last RTP packet of the access unit arrived.
+    pub arrived_at: Instant,
+    /// When decoding finished.
+    pub decoded_at: Instant,
+    pub bytes: usize,
+    pub width: u32,
+    pub height: u32,
+    /// RGBA8, `width`×`height` (empty unless `keep_pixels`).
+    pub rgba: Vec<u8>,
+}
+
+/// A connected client; receive from `frames` and `messages`.
+pub struct StreamClient {
+    pc: Arc<RTCPeerConnection>,
+    channel: Arc<RTCDataChannel>,
+    pub frames: mpsc::UnboundedReceiver<ReceivedFrame>,
+    pub messages: mpsc::UnboundedReceiver<ToViewer>,
+    /// The `session` message the master sent when the channel opened.
+    pub session: ToViewer,
+    /// Signaling messages after the connection was set up (`ended`, errors).
+    pub signaling: mpsc::UnboundedReceiver<ToClient>,
+    ws_out: mpsc::UnboundedSender<ToSignal>,
+    video_ssrc: Arc<AtomicU32>,
+}
+
+impl StreamClient {
+    /// Joins, negotiates and waits (up to 30 s) for the pose channel and the session message.
+    pub async fn connect(opts: &ClientOptions) -> Result<Self> {
+        tokio::time::timeout(Duration::from_secs(30), Self::connect_inner(opts)).await.context("timed out connecting (30 s)")?
+    }
+
+    async fn connect_inner(opts: &ClientOptions) -> Result<Self> {
+        let (ws, _) = tokio_tungstenite::connect_async(&opts.signal_url).await.with_context(|| format!("connecting to {}", opts.signal_url))?;
+        let (mut ws_tx, mut ws_rx) = ws.split();
+        let join = ToSignal::Join {
+            scene: opts.scene.clone(),
+            mode: opts.mode,
+            width: opts.width,
+            height: opts.height,
+            fps: opts.fps,
+            token: opts.token.clone(),
+        };
+        ws_tx.send(Message::text(serde_json::to_string(&join)?)).await?;
+        match next_signal(&mut ws_rx).await? {
+            ToClient::Joined { .. } => {}
+            ToClient::Error { code, message } => bail!("signaling refused the join ({code:?}): {message}"),
+            other => bail!("unexpected signaling message before joined: {other:?}"),
+        }
+
+        let api = build_api(&RtcConfig { loopback_only: true, public_ips: vec![] })?;
+        let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
+        pc.add_transceiver_from_kind(
+            RTPCodecType::Video,
+            Some(RTCRtpTransceiverInit { direction: RTCRtpTransceiverDirection::Recvonly, send_encodings: vec![] }),
+        )
+        .await?;
+        let init = RTCDataChannelInit { ordered: Some(false), max_retransmits: Some(0), ..Default::default() };
+        let channel = pc.create_data_channel("pose", Some(init)).await?;
+
+        let (ws_out, mut ws_out_rx) = mpsc::unbounded_channel::<ToSignal>();
+        let ice_tx = ws_out.clone();
+        pc.on_ice_candidate(Box::new(move |c| {
+            let tx = ice_tx.clone();
+            Box::pin(async move {
+                if let Some(Ok(init)) = c.map(|c| c.to_json()) {
+                    let candidate = serde_json::json!({"candidate": init.candidate, "sdpMid": null, "sdpMLineIndex": 0});
+                    let _ = tx.send(ToSignal::Ice { session: None, candidate });
+                }
+            })
+        }));
+
+        let (frame_tx, frames) = mpsc::unbounded_channel();
+        let keep_pixels = opts.keep_pixels;
+        let (w, h) = (opts.width, opts.height);
+        let video_ssrc = Arc::new(AtomicU32::new(0));
+        let ssrc_slot = Arc::clone(&video_ssrc);
+        pc.on_track(Box::new(move |track, _, _| {
+            let frame_tx = frame_tx.clone();
+            ssrc_slot.store(track.ssrc(), Ordering::Relaxed);
+            Box::pin(async move {
+                let (au_tx, au_rx) = std::sync::mpsc::channel::<(Vec<u8>, Instant)>();
+                std::thread::spawn(move || decode_loop(au_rx, frame_tx, keep_pixels, w, h));
+                tokio::spawn(async move {
+                    let mut depacketizer = H264Packet::default();
+                    let mut au: Vec<u8> = Vec::new();
+                    let mut au_timestamp = None;
+                    while let Ok((packet, _)) = track.read_rtp().await {
+                        // A new timestamp without a marker on the last one: the end was lost.
+                        if au_timestamp.is_some_and(|t| t != packet.header.timestamp) && !au.is_empty() {
+                            let _ = au_tx.send((std::mem::take(&mut au), Instant::now()));
+                        }
+                        au_timestamp = Some(packet.header.timestamp);
+                        match depacketizer.depacketize(&packet.payload) {
+                            Ok(nals) => au.extend_from_slice(&nals),
+                            Err(e) => tracing::debug!("dropping an RTP packet: {e}"),
+                        }
+                        if packet.header.marker && !au.is_empty() {
+                            let _ = au_tx.send((std::mem::take(&mut au), Instant::now()));
+                        }
+                    }
+                });
+            })
+        }));
+
+        let (msg_tx, mut messages) = mpsc::unbounded_channel();
+        channel.on_message(Box::new(move |m: DataChannelMessage| {
+            if m.is_string {
+                match serde_json::from_slice::<ToViewer>(&m.data) {
+                    Ok(msg) => {
+                        let _ = msg_tx.send(msg);
+                    }
+                    Err(e) => tracing::warn!("unreadable message from the master: {e}"),
+                }
+            }
+            Box::pin(async {})
+        }));
+
+        let offer = pc.create_offer(None).await?;
+        pc.set_local_description(offer).await?;
+        let sdp = pc.local_description().await.context("no local description")?.sdp;
+        ws_tx.send(Message::text(serde_json::to_string(&ToSignal::Offer { sdp })?)).await?;
+
+        // From here a task owns the websocket: it applies the answer and candidates and
+        // forwards everything else.
+        let (sig_tx, mut signaling) = mpsc::unbounded_channel();
+        let pc2 = Arc::clone(&pc);
+        tokio::spawn(async move {
+            loop {
+                tokio::select! {
+                    out = ws_out_rx.recv() => {
+                        let Some(out) = out else { break };
+                        let Ok(text) = serde_json::to_string(&out) else { continue };
+                        if ws_tx.send(Message::text(text)).await.is_err() { break }
+                    }
+                    msg = next_signal(&mut ws_rx) => match msg {
+                        Ok(ToClient::Answer { sdp }) => {
+                            let applied = match RTCSessionDescription::answer(sdp) {
+                                Ok(answer) => pc2.set_remote_description(answer).await.map_err(|e| anyhow!(e)),
+                                Err(e) => Err(anyhow!(e)),
+                            };
+                            if let Err(e) = applied {
+                                let _ = sig_tx.send(ToClient::Error { code: nephele_signaling::ErrorCode::BadRequest, message: format!("bad answer: {e}") });
+                            }
+                        }
+                        Ok(ToClient::Ice { candidate }) => {
+                            if let Ok(init) = serde_json::from_value::<RTCIceCandidateInit>(candidate)
+                                && !init.candidate.is_empty()
+                                && let Err(e) = pc2.add_ice_candidate(init).await
+                            {
+                                tracing::debug!("bad candidate from the master: {e}");
+                            }
+                        }
+                        Ok(other) => { let _ = sig_tx.send(other); }
+                        Err(_) => break,
+                    },
+                }
+            }
+        });
+
+        // Wait for the master's session message (sent when the channel opens).
+        let session = loop {
+            tokio::select! {
+                m = messages.recv() => match m {
+                    Some(m @ ToViewer::Session { .. }) => break m,
+                    Some(_) => continue,
+                    None => bail!("the pose channel closed before the session started"),
+                },
+                s = signaling.recv() => match s {
+                    Some(ToClient::Error { code, message }) => bail!("signaling error ({code:?}): {message}"),
+                    Some(ToClient::Ended { reason }) => bail!("the master ended the session: {reason}"),
+                    Some(_) => continue,
+                    None => bail!("signaling closed"),
+                },
+            }
+        };
+        Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc })
+    }
+
+    pub async fn send_pose(&self, pose: &PoseMessage) -> Result<()> {
+        self.send_bytes(Bytes::from(pose.encode())).await
+    }
+
+    /// Sends arbitrary bytes on the pose channel (tests of bad input).
+    pub async fn send_bytes(&self, bytes: Bytes) -> Result<()> {
+        self.channel.send(&bytes).await.context("pose channel send")?;
+        Ok(())
+    }
+
+    pub async fn send_text(&self, text: &str) -> Result<()> {
+        self.channel.send_text(text.to_owned()).await.context("pose channel send")?;
+        Ok(())
+    }
+
+    /// Asks the master for an IDR, as a receiver does after packet loss.
+    pub async fn send_pli(&self) -> Result<()> {
+        let ssrc = self.video_ssrc.load(Ordering::Relaxed);
+        self.pc.write_rtcp(&[Box::new(PictureLossIndication { sender_ssrc: 0, media_ssrc: ssrc })]).await?;
+        Ok(())
+    }
+
+    pub async fn close(self) {
+        let _ = self.ws_out.send(ToSignal::Leave {});
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let _ = self.pc.close().await;
+    }
+}
+
+async fn next_signal<S>(rx: &mut S) -> Result<ToClient>
+where
+    S: futures_util::Stream<Item = Result<Message, tokio_tungstenite::tungstenite::Error>> + Unpin,
+{
+    loop {
+        match rx.next().await {
+            None => bail!("signaling closed the connection"),
+            Some(Err(e)) => bail!("signaling connection: {e}"),
+            Some(Ok(Message::Text(t))) => return serde_json::from_str(&t).with_context(|| format!("unreadable signaling message {t}")),
+            Some(Ok(Message::Close(_))) => bail!("signaling closed the connection"),
+            Some(Ok(_)) => continue,
+        }
+    }
+}
+
+/// Decoder thread: access units in, RGBA frames out (cropped to the session size).
+fn decode_loop(
+    aus: std::sync::mpsc::Receiver<(Vec<u8>, Instant)>,
+    out: mpsc::UnboundedSender<ReceivedFrame>,
+    keep_pixels: bool,
+    width: u32,
+    height: u32,
+) {
+    let mut decoder = match Decoder::new() {
+        Ok(d) => d,
+        Err(e) => {
+            tracing::error!("cannot create the H.264 decoder: {e}");
+            return;
+        }
+    };
+    let mut full = Vec::new();
+    for (au, arrived_at) in aus {
+        let pose_seq = parse_pose_seq(&au);
+        let decoded = match decoder.decode(&au) {
+            Ok(Some(yuv)) => yuv,
+            Ok(None) => continue,
+            Err(e) => {
+                tracing::debug!("undecodable access unit: {e}");
+                continue;
+            }
+        };
+        let (dw, dh) = decoded.dimensions();
+        let mut rgba = Vec::new();
+        if keep_pixels {
+            full.resize(dw * dh * 4, 0);
+            decoded.write_rgba8(&mut full);
+            let (w, h) = ((width as usize).min(dw), (height as usize).min(dh));
+            rgba.reserve(w * h * 4);
+            for row in full.chunks_exact(dw * 4).take(h) {
+                rgba.extend_from_slice(&row[..w * 4]);
+            }
+        }
+        let frame = ReceivedFrame {
+            pose_seq,
+            arrived_at,
+            decoded_at: Instant::now(),
+            bytes: au.len(),
+            width: width.min(dw as u32),
+            height: height.min(dh as u32),
+            rgba,
+        };
+        if out.send(frame).is_err() {
+            return;
+        }
+    }
+}

@@ -1,0 +1,69 @@
+//! The scenes a master can render: each asset prepared once on the chosen backend and
+//! shared by every session that views it. Sessions render on the blocking pool; the CPU
+//! backend spreads each frame over rayon's threads, the GPU backend queues on the device.
+
+use std::{collections::BTreeMap, sync::Arc};
+
+use anyhow::{Context, Result, bail};
+use glam::Vec3;
+use nephele_renderer::{Backend, PreparedAsset, RenderSettings};
+
+use crate::assets::load_asset;
+
+/// One servable scene.
+pub struct SceneEntry {
+    pub name: String,
+    pub prepared: Box<dyn PreparedAsset>,
+    /// Centre and radius of the asset's bounding sphere, scene units (identity instance).
+    pub center: Vec3,
+    pub radius: f32,
+}
+
+/// Every scene of this master, plus how to render them.
+pub struct Farm {
+    pub scenes: BTreeMap<String, Arc<SceneEntry>>,
+    pub default_scene: String,
+    pub settings: RenderSettings,
+    pub backend_name: String,
+}
+
+impl Farm {
+    /// `specs` are `name=asset` or a bare asset (`builtin:trio` → named `trio`,
+    /// `path/lego.nolf` → `lego`). The first is the default.
+    pub fn load(specs: &[String], backend: &dyn Backend, settings: RenderSettings) -> Result<Self> {
+        if specs.is_empty() {
+            bail!("no scenes to serve");
+        }
+        let mut scenes = BTreeMap::new();
+        let mut default_scene = None;
+        for spec in specs {
+            let (name, asset_spec) = match spec.split_once('=') {
+                Some((n, a)) => (n.to_owned(), a),
+                None => (scene_name_of(spec), spec.as_str()),
+            };
+            let valid = !name.is_empty() && name.len() <= 64 && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
+            if !valid {
+                bail!("scene name {name:?} must be 1..=64 characters from [A-Za-z0-9_-] (write name=asset)");
+            }
+            let asset = load_asset(asset_spec)?;
+            let b = asset.bounds;
+            let (center, radius) = ((b.min + b.max) * 0.5, (b.max - b.min).length() * 0.5);
+            let prepared = backend.prepare(asset).with_context(|| format!("preparing scene {name}"))?;
+            default_scene.get_or_insert_with(|| name.clone());
+            if scenes.insert(name.clone(), Arc::new(SceneEntry { name: name.clone(), prepared, center, radius })).is_some() {
+                bail!("scene {name:?} is given twice");
+            }
+        }
+        Ok(Self { scenes, default_scene: default_scene.expect("at least one scene"), settings, backend_name: backend.name() })
+    }
+
+    pub fn names(&self) -> Vec<String> {
+        self.scenes.keys().cloned().collect()
+    }
+}
+
+fn scene_name_of(spec: &str) -> String {
+    let base = spec.strip_prefix("builtin:").unwrap_or(spec);
+    let base = std::path::Path::new(base).file_stem().and_then(|s| s.to_str()).unwrap_or(base);
+    base.to_owned()
+}

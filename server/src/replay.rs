@@ -1,0 +1,375 @@
+//! Pose traces and their replay through a real server (`nephele replay`).
+//!
+//! A trace is a recorded camera path: one camera-to-world matrix per 20 ms tick. The replay
+//! client sends the poses on schedule, decodes what comes back, reads the answered pose
+//! sequence from each access unit's SEI, and reports pose→decoded latency on its own clock,
+//! fps, bitrate, the master's per-stage times, and image quality against a direct render of
+//! the same pose (PSNR; in AR mode also the IoU of the keyed-out green against the
+//! renderer's alpha).
+
+use std::{
+    collections::HashMap,
+    path::Path,
+    time::{Duration, Instant},
+};
+
+use anyhow::{Context, Result, bail};
+use glam::{DVec3, Mat4};
+use nephele_renderer::{Intrinsics, PreparedAsset, RenderSettings, View, ViewRequest};
+use nephele_signaling::Mode;
+use serde::{Deserialize, Serialize};
+
+use crate::{
+    client::{ClientOptions, ReceivedFrame, StreamClient},
+    master::{AR_BACKGROUND, VIEWER_BACKGROUND},
+    wire::{FrameInfo, PoseMessage, ToViewer},
+};
+
+/// A recorded camera path.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Trace {
+    pub name: String,
+    pub description: String,
+    /// Vertical field of view, degrees.
+    pub fov_y_deg: f64,
+    /// Time between poses, ms.
+    pub period_ms: f64,
+    /// Camera-to-world matrices, column-major, OpenGL camera, scene units (world up +z).
+    pub poses: Vec<[f32; 16]>,
+}
+
+/// The traces shipped in `examples/traces/`, made by [`Trace::builtin`].
+pub const BUILTIN_TRACES: &[&str] = &["orbit", "zoom", "shake"];
+
+impl Trace {
+    /// Built-in camera paths around the origin (the procedural scenes' centre):
+    /// `orbit` (one turn in 5 s), `zoom` (distance 4 → 1.3, a close-up, and back),
+    /// `shake` (fast ±12° jitter, as a hand-held phone).
+    pub fn builtin(name: &str) -> Result<Self> {
+        let n = 250; // 5 s at 20 ms
+        let orbit = |az: f64, el: f64, dist: f64| View::orbit(DVec3::ZERO, dist, az, el, Intrinsics::from_fov_x(2, 2, 1.0)).world_from_camera.as_mat4().to_cols_array();
+        let (description, poses): (&str, Vec<[f32; 16]>) = match name {
+            "orbit" => ("one turn around the object at distance 4, elevation 20°", (0..n).map(|i| orbit(360.0 * i as f64 / n as f64, 20.0, 4.0)).collect()),
+            "zoom" => (
+                "zoom from distance 4 to a close-up at 1.3 and back, turning slowly",
+                (0..n)
+                    .map(|i| {
+                        let s = (std::f64::consts::PI * i as f64 / (n - 1) as f64).sin();
+                        orbit(30.0 + 0.2 * i as f64, 25.0, 4.0 - 2.7 * s)
+                    })
+                    .collect(),
+            ),
+            "shake" => (
+                "hand-held shake: ±12° jitter at 3–7 Hz around azimuth 40°",
+                (0..n)
+                    .map(|i| {
+                        let t = i as f64 * 0.02;
+                        let tau = std::f64::consts::TAU;
+                        let az = 40.0 + 8.0 * (tau * 7.0 * t).sin() + 4.0 * (tau * 3.1 * t + 1.0).sin();
+                        let el = 20.0 + 6.0 * (tau * 5.3 * t + 0.5).sin();
+                        orbit(az, el, 3.5 + 0.3 * (tau * 4.0 * t).sin())
+                    })
+                    .collect(),
+            ),
+            other => bail!("unknown trace {other:?}; built-in traces: {}", BUILTIN_TRACES.join(", ")),
+        };
+        Ok(Self { name: name.into(), description: description.into(), fov_y_deg: 40.0, period_ms: 20.0, poses })
+    }
+
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading trace {}", path.display()))?;
+        let trace: Self = serde_json::from_str(&text).with_context(|| format!("parsing trace {}", path.display()))?;
+        if trace.poses.is_empty() || !(1.0..=1000.0).contains(&trace.period_ms) || !(1.0..=170.0).contains(&trace.fov_y_deg) {
+            bail!("trace {} needs poses, period_ms in 1..=1000 and fov_y_deg in 1..=170", path.display());
+        }
+        Ok(trace)
+    }
+
+    pub fn to_json(&self) -> String {
+        serde_json::to_string(self).expect("traces serialize")
+    }
+
+    /// Pinhole intrinsics for a `width`×`height` frame.
+    pub fn intrinsics(&self, width: u32, height: u32) -> Intrinsics {
+        let fy = 0.5 * height as f32 / (0.5 * self.fov_y_deg.to_radians() as f32).tan();
+        Intrinsics { fx: fy, fy, cx: 0.5 * width as f32, cy: 0.5 * height as f32, width, height }
+    }
+}
+
+/// How to replay.
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
+    pub client: ClientOptions,
+    /// AR plane anchor sent with every pose (AR mode).
+    pub anchor: Option<Mat4>,
+    /// Compare every n-th decoded frame with a direct render (0: none).
+    pub quality_every: usize,
+    /// Write the decoded frames here as PNG.
+    pub save_dir: Option<std::path::PathBuf>,
+    /// How long to wait for the last frames after the last pose.
+    pub drain: Duration,
+}
+
+/// Percentiles of a sample, ms.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p95: f64,
+    pub p99: f64,
+    pub max: f64,
+    pub n: usize,
+}
+
+impl Percentiles {
+    pub fn of(values: &[f64]) -> Self {
+        if values.is_empty() {
+            return Self::default();
+        }
+        let mut v = values.to_vec();
+        v.sort_by(f64::total_cmp);
+        let at = |q: f64| v[((q * (v.len() - 1) as f64).round() as usize).min(v.len() - 1)];
+        Self { p50: at(0.5), p95: at(0.95), p99: at(0.99), max: v[v.len() - 1], n: v.len() }
+    }
+}
+
+/// A decoded frame compared with a direct render of the pose it answers.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct QualitySample {
+    pub pose_seq: u64,
+    pub psnr_db: f64,
+    /// AR only: IoU of the keyed object mask and the renderer's alpha mask.
+    pub key_iou: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ReplayReport {
+    pub trace: String,
+    pub width: u32,
+    pub height: u32,
+    pub poses_sent: usize,
+    pub frames_decoded: usize,
+    /// Decoded frames whose SEI names a pose this client never sent (must be 0).
+    pub frames_unknown_pose: usize,
+    /// Decoded frames without a pose SEI (must be 0).
+    pub frames_without_pose: usize,
+    /// Pose sent → frame decoded, ms, on this client's clock.
+    pub latency_ms: Percentiles,
+    /// Pose sent → frame-info message received, ms.
+    pub info_latency_ms: Percentiles,
+    pub fps: f64,
+    pub bitrate_kbps: f64,
+    /// The master's own times from the frame-info messages.
+    pub queue_ms: Percentiles,
+    pub render_ms: Percentiles,
+    pub convert_ms: Percentiles,
+    pub encode_ms: Percentiles,
+    pub send_ms: Percentiles,
+    pub idr_frames: usize,
+    pub quality: Vec<QualitySample>,
+    /// Errors the master sent on the pose channel.
+    pub errors: Vec<String>,
+}
+
+impl ReplayReport {
+    pub fn min_psnr(&self) -> Option<f64> {
+        self.quality.iter().map(|q| q.psnr_db).reduce(f64::min)
+    }
+    pub fn mean_psnr(&self) -> Option<f64> {
+        (!self.quality.is_empty()).then(|| self.quality.iter().map(|q| q.psnr_db).sum::<f64>() / self.quality.len() as f64)
+    }
+    pub fn min_iou(&self) -> Option<f64> {
+        self.quality.iter().filter_map(|q| q.key_iou).reduce(f64::min)
+    }
+}
+
+impl std::fmt::Display for ReplayReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let p = |x: &Percentiles| format!("p50 {:6.1}  p95 {:6.1}  p99 {:6.1}  max {:6.1}", x.p50, x.p95, x.p99, x.max);
+        writeln!(f, "trace {} at {}x{}: {} poses sent, {} frames decoded ({} IDR)", self.trace, self.width, self.height, self.poses_sent, self.frames_decoded, self.idr_frames)?;
+        writeln!(f, "  pose → decoded frame ms   {}", p(&self.latency_ms))?;
+        writeln!(f, "  pose → frame info ms      {}", p(&self.info_latency_ms))?;
+        writeln!(f, "  master queue ms           {}", p(&self.queue_ms))?;
+        writeln!(f, "  master render ms          {}", p(&self.render_ms))?;
+        writeln!(f, "  master RGB→I420 ms        {}", p(&self.convert_ms))?;
+        writeln!(f, "  master encode ms          {}", p(&self.encode_ms))?;
+        writeln!(f, "  master send ms            {}", p(&self.send_ms))?;
+        writeln!(f, "  {:.1} fps, {:.0} kbit/s", self.fps, self.bitrate_kbps)?;
+        if let (Some(min), Some(mean)) = (self.min_psnr(), self.mean_psnr()) {
+            writeln!(f, "  PSNR vs direct render: mean {mean:.2} dB, min {min:.2} dB over {} frames", self.quality.len())?;
+        }
+        if let Some(iou) = self.min_iou() {
+            writeln!(f, "  AR key IoU vs renderer alpha: min {iou:.4}")?;
+        }
+        if self.frames_unknown_pose + self.frames_without_pose > 0 {
+            writeln!(f, "  WARNING: {} frames answer no pose we sent, {} carry no pose", self.frames_unknown_pose, self.frames_without_pose)?;
+        }
+        for e in &self.errors {
+            writeln!(f, "  master said: {e}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Replays `trace` through the server at `opts.client.signal_url`. `reference` renders the
+/// same poses directly for the quality comparison (same asset and settings as the server).
+pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn PreparedAsset, RenderSettings)>) -> Result<ReplayReport> {
+    let mut client = StreamClient::connect(&opts.client).await?;
+    let (w, h) = (opts.client.width, opts.client.height);
+    let intrinsics = trace.intrinsics(w, h);
+    let mut sent_at: HashMap<u64, (Instant, usize)> = HashMap::new();
+    let mut frames: Vec<ReceivedFrame> = Vec::new();
+    let mut infos: Vec<(FrameInfo, Instant)> = Vec::new();
+    let mut errors = Vec::new();
+    let period = Duration::from_secs_f64(trace.period_ms / 1e3);
+    let mut ticker = tokio::time::interval(period);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+    let mut next = 0usize;
+    let mut drain_until: Option<tokio::time::Instant> = None;
+    let start = Instant::now();
+    loop {
+        tokio::select! {
+            _ = ticker.tick(), if next < trace.poses.len() => {
+                let seq = next as u32 + 1;
+                let pose = PoseMessage {
+                    seq,
+                    t_client_ms: start.elapsed().as_secs_f64() * 1e3,
+                    world_from_camera: Mat4::from_cols_array(&trace.poses[next]),
+                    intrinsics,
+                    world_from_anchor: opts.anchor,
+                };
+                sent_at.insert(u64::from(seq), (Instant::now(), next));
+                client.send_pose(&pose).await?;
+                next += 1;
+                if next == trace.poses.len() {
+                    drain_until = Some(tokio::time::Instant::now() + opts.drain);
+                }
+            }
+            f = client.frames.recv() => match f {
+                Some(f) => frames.push(f),
+                None => bail!("the video stream ended early"),
+            },
+            m = client.messages.recv() => match m {
+                Some(ToViewer::Frame(info)) => infos.push((info, Instant::now())),
+                Some(ToViewer::Error { code, message }) => errors.push(format!("{code}: {message}")),
+                Some(_) => {}
+                None => bail!("the pose channel closed early"),
+            },
+            s = client.signaling.recv() => {
+                if let Some(s) = s { bail!("signaling: {s:?}") }
+            }
+            _ = async { tokio::time::sleep_until(drain_until.expect("guarded")).await }, if drain_until.is_some() => break,
+        }
+    }
+    client.close().await;
+
+    let mut latency = Vec::new();
+    let (mut unknown, mut without) = (0, 0);
+    for f in &frames {
+        match f.pose_seq.and_then(|s| sent_at.get(&s)) {
+            Some((t, _)) => latency.push(f.decoded_at.duration_since(*t).as_secs_f64() * 1e3),
+            None if f.pose_seq.is_some() => unknown += 1,
+            None => without += 1,
+        }
+    }
+    let info_latency: Vec<f64> = infos
+        .iter()
+        .filter_map(|(i, at)| sent_at.get(&u64::from(i.pose_seq)).map(|(t, _)| at.duration_since(*t).as_secs_f64() * 1e3))
+        .collect();
+    let span = match (frames.first(), frames.last()) {
+        (Some(a), Some(b)) if frames.len() > 1 => b.decoded_at.duration_since(a.decoded_at).as_secs_f64(),
+        _ => 0.0,
+    };
+    let bytes: usize = frames.iter().map(|f| f.bytes).sum();
+    let stat = |f: fn(&FrameInfo) -> f64| Percentiles::of(&infos.iter().map(|(i, _)| f(i)).collect::<Vec<_>>());
+
+    if let Some(dir) = &opts.save_dir {
+        std::fs::create_dir_all(dir)?;
+        for (i, f) in frames.iter().enumerate().filter(|(_, f)| !f.rgba.is_empty()) {
+            let frame = nephele_renderer::Frame { width: f.width, height: f.height, rgba: f.rgba.clone(), depth: vec![] };
+            frame.save_png(&dir.join(format!("frame{:04}_pose{}.png", i, f.pose_seq.unwrap_or(0))))?;
+        }
+    }
+
+    let mut quality = Vec::new();
+    if let (Some((prepared, settings)), true) = (reference, opts.quality_every > 0) {
+        let background = if opts.client.mode == Mode::Ar { AR_BACKGROUND } else { VIEWER_BACKGROUND };
+        let instance = match opts.anchor {
+            Some(a) => PoseMessage { seq: 0, t_client_ms: 0.0, world_from_camera: Mat4::IDENTITY, intrinsics, world_from_anchor: Some(a) }
+                .view((w, h))
+                .map(|(_, i)| i)
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
+            None => nephele_renderer::Instance::default(),
+        };
+        for f in frames.iter().step_by(opts.quality_every) {
+            let Some((_, index)) = f.pose_seq.and_then(|s| sent_at.get(&s)) else { continue };
+            if f.rgba.is_empty() || (f.width, f.height) != (w, h) {
+                continue;
+            }
+            let view = View { world_from_camera: Mat4::from_cols_array(&trace.poses[*index]).as_dmat4(), intrinsics };
+            let msg = PoseMessage { seq: 0, t_client_ms: 0.0, world_from_camera: view.world_from_camera.as_mat4(), intrinsics, world_from_anchor: None };
+            let (view, _) = msg.view((w, h)).map_err(|e| anyhow::anyhow!("{e}"))?;
+            let out = prepared.render(&[ViewRequest { view, instance, background }], &settings)?;
+            let direct = &out.frames[0];
+            let psnr_db = psnr_rgb(&direct.rgba, &f.rgba);
+            let key_iou = (opts.client.mode == Mode::Ar).then(|| key_iou(&direct.rgba, &f.rgba));
+            quality.push(QualitySample { pose_seq: f.pose_seq.unwrap_or(0), psnr_db, key_iou });
+        }
+    }
+
+    Ok(ReplayReport {
+        trace: trace.name.clone(),
+        width: w,
+        height: h,
+        poses_sent: next,
+        frames_decoded: frames.len(),
+        frames_unknown_pose: unknown,
+        frames_without_pose: without,
+        latency_ms: Percentiles::of(&latency),
+        info_latency_ms: Percentiles::of(&info_latency),
+        fps: if span > 0.0 { (frames.len() - 1) as f64 / span } else { 0.0 },
+        bitrate_kbps: if span > 0.0 { bytes as f64 * 8.0 / span / 1e3 } else { 0.0 },
+        queue_ms: stat(|i| i.queue_ms),
+        render_ms: stat(|i| i.render_ms),
+        convert_ms: stat(|i| i.convert_ms),
+        encode_ms: stat(|i| i.encode_ms),
+        send_ms: stat(|i| i.send_ms),
+        idr_frames: infos.iter().filter(|(i, _)| i.idr).count(),
+        quality,
+        errors,
+    })
+}
+
+/// PSNR over the RGB channels of two RGBA8 images of the same size, dB (∞ if identical).
+pub fn psnr_rgb(a: &[u8], b: &[u8]) -> f64 {
+    assert_eq!(a.len(), b.len(), "images differ in size");
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for (pa, pb) in a.chunks_exact(4).zip(b.chunks_exact(4)) {
+        for c in 0..3 {
+            let d = f64::from(pa[c]) - f64::from(pb[c]);
+            se += d * d;
+        }
+        n += 3;
+    }
+    let mse = se / n.max(1) as f64;
+    if mse == 0.0 { f64::INFINITY } else { 10.0 * (255.0f64 * 255.0 / mse).log10() }
+}
+
+/// The AR page's key, in Rust: how strongly a pixel is the green screen, 0..1. Green
+/// dominance `g − max(r, b)` is 1 for pure green and ≤ 0 for anything not green-tinted.
+pub fn green_key(rgb: [u8; 3]) -> f32 {
+    let [r, g, b] = rgb.map(|c| f32::from(c) / 255.0);
+    ((g - r.max(b)) / 0.75).clamp(0.0, 1.0)
+}
+
+/// IoU of "object" masks: the renderer's alpha ≥ ½ versus a keyed decoded pixel with
+/// key ≤ ½ (a pixel is object when it is less than half green screen).
+pub fn key_iou(direct_rgba: &[u8], decoded_rgba: &[u8]) -> f64 {
+    let (mut inter, mut union) = (0u64, 0u64);
+    for (d, v) in direct_rgba.chunks_exact(4).zip(decoded_rgba.chunks_exact(4)) {
+        let truth = d[3] >= 128;
+        let keyed = green_key([v[0], v[1], v[2]]) <= 0.5;
+        inter += u64::from(truth && keyed);
+        union += u64::from(truth || keyed);
+    }
+    if union == 0 { 1.0 } else { inter as f64 / union as f64 }
+}

@@ -1,0 +1,346 @@
+//! One streaming session's logic as a sans-IO state machine (no sockets, no clocks, no
+//! threads): the runner feeds it pose bytes, PLIs and finished frames with the time they
+//! happened, and asks it what to render next and when to wake up. Tested on simulated time.
+//!
+//! Rules (DESIGN.md §5):
+//! - a pose is validated before it is kept; a refused pose gets a reason and the session
+//!   keeps its last good pose;
+//! - latest pose wins: the channel is unordered, so a pose older than the newest seen is
+//!   dropped, and a pose superseded before its frame slot is never rendered;
+//! - at most `fps` frames per second, one frame in flight, nothing rendered before the
+//!   first pose;
+//! - the first frame is an IDR; PLI/FIR ask for another (at most one per 250 ms).
+
+use std::time::{Duration, Instant};
+
+use nephele_renderer::{Instance, View};
+
+use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
+
+/// Shortest gap between two IDRs forced by picture-loss reports.
+pub const IDR_MIN_GAP: Duration = Duration::from_millis(250);
+
+/// A validated pose waiting for its frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PendingPose {
+    pub seq: u32,
+    pub t_client_ms: f64,
+    pub view: View,
+    pub instance: Instance,
+    pub received_at: Instant,
+}
+
+/// What the runner should do now: render and encode this pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameJob {
+    pub frame: u64,
+    pub pose: PendingPose,
+    /// Encode as an IDR (first frame, or a picture-loss report).
+    pub idr: bool,
+    /// Same camera and placement as the previous frame: its pixels can be reused.
+    pub same_as_previous: bool,
+    pub started_at: Instant,
+}
+
+/// Timings the runner measured for a finished frame.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FrameTimes {
+    pub render_ms: f64,
+    pub convert_ms: f64,
+    pub encode_ms: f64,
+    pub send_ms: f64,
+    pub bytes: usize,
+    pub idr: bool,
+}
+
+/// Counters for the session's life, for logs and tests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SessionCounters {
+    pub poses_accepted: u64,
+    pub poses_rejected: u64,
+    /// Older than a pose already seen (reordered by the unordered channel).
+    pub poses_stale: u64,
+    /// Accepted but replaced by a newer pose before a frame slot came.
+    pub poses_superseded: u64,
+    pub frames: u64,
+    pub idrs_requested: u64,
+}
+
+#[derive(Debug)]
+pub struct Session {
+    size: (u32, u32),
+    frame_period: Duration,
+    /// Newest validated pose not yet rendered.
+    pending: Option<PendingPose>,
+    newest_seq: Option<u32>,
+    last_rendered: Option<PendingPose>,
+    in_flight: Option<FrameJob>,
+    /// Earliest start of the next frame.
+    next_slot: Option<Instant>,
+    idr_wanted: bool,
+    last_idr_at: Option<Instant>,
+    frame_number: u64,
+    counters: SessionCounters,
+}
+
+impl Session {
+    pub fn new(width: u32, height: u32, fps: u32) -> Self {
+        let fps = fps.clamp(1, 120);
+        Self {
+            size: (width, height),
+            frame_period: Duration::from_secs_f64(1.0 / f64::from(fps)),
+            pending: None,
+            newest_seq: None,
+            last_rendered: None,
+            in_flight: None,
+            next_slot: None,
+            idr_wanted: true,
+            last_idr_at: None,
+            frame_number: 0,
+            counters: SessionCounters::default(),
+        }
+    }
+
+    pub fn counters(&self) -> SessionCounters {
+        self.counters
+    }
+
+    pub fn size(&self) -> (u32, u32) {
+        self.size
+    }
+
+    /// A pose message arrived. `Ok(false)`: well-formed but older than one already seen.
+    pub fn on_pose(&mut self, bytes: &[u8], now: Instant) -> Result<bool, PoseRejection> {
+        let checked = PoseMessage::decode(bytes).and_then(|m| m.view(self.size).map(|(v, i)| (m, v, i)));
+        let (msg, view, instance) = match checked {
+            Ok(x) => x,
+            Err(e) => {
+                self.counters.poses_rejected += 1;
+                return Err(e);
+            }
+        };
+        if self.newest_seq.is_some_and(|newest| msg.seq <= newest) {
+            self.counters.poses_stale += 1;
+            return Ok(false);
+        }
+        self.newest_seq = Some(msg.seq);
+        self.counters.poses_accepted += 1;
+        if self.pending.is_some() {
+            self.counters.poses_superseded += 1;
+        }
+        self.pending = Some(PendingPose { seq: msg.seq, t_client_ms: msg.t_client_ms, view, instance, received_at: now });
+        Ok(true)
+    }
+
+    /// The client lost a picture (RTCP PLI or FIR): the next frame is an IDR. Returns
+    /// whether the request was taken (repeats within [`IDR_MIN_GAP`] are ignored).
+    pub fn on_picture_loss(&mut self, now: Instant) -> bool {
+        if self.idr_wanted || self.last_idr_at.is_some_and(|t| now.duration_since(t) < IDR_MIN_GAP) {
+            return false;
+        }
+        self.idr_wanted = true;
+        self.counters.idrs_requested += 1;
+        // An IDR must go out even if the camera is still: re-send the last pose.
+        true
+    }
+
+    /// The frame to start now, if any: a new pose is waiting (or an IDR is owed and a pose
+    /// was ever seen), no frame is in flight, and the frame slot has come.
+    pub fn poll_frame(&mut self, now: Instant) -> Option<FrameJob> {
+        if self.in_flight.is_some() || self.next_slot.is_some_and(|t| now < t) {
+            return None;
+        }
+        let pose = match self.pending.take() {
+            Some(p) => p,
+            None if self.idr_wanted => self.repeat_pose(now)?,
+            None => return None,
+        };
+        self.frame_number += 1;
+        let same_as_previous = self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
+        let job = FrameJob { frame: self.frame_number, pose, idr: self.idr_wanted, same_as_previous, started_at: now };
+        if self.idr_wanted {
+            self.last_idr_at = Some(now);
+        }
+        self.idr_wanted = false;
+        self.next_slot = Some(now + self.frame_period);
+        self.in_flight = Some(job);
+        Some(job)
+    }
+
+    /// The in-flight frame was encoded and sent. Returns the frame info for the client.
+    pub fn frame_done(&mut self, times: FrameTimes) -> Option<FrameInfo> {
+        let job = self.in_flight.take()?;
+        self.counters.frames += 1;
+        self.last_rendered = Some(job.pose);
+        Some(FrameInfo {
+            frame: job.frame,
+            pose_seq: job.pose.seq,
+            t_client_ms: job.pose.t_client_ms,
+            width: self.size.0,
+            height: self.size.1,
+            queue_ms: job.started_at.duration_since(job.pose.received_at).as_secs_f64() * 1e3,
+            render_ms: times.render_ms,
+            convert_ms: times.convert_ms,
+            encode_ms: times.encode_ms,
+            send_ms: times.send_ms,
+            bytes: times.bytes,
+            idr: times.idr,
+        })
+    }
+
+    /// The in-flight frame failed (render or encode error); the next frame must be an IDR.
+    pub fn frame_failed(&mut self) {
+        if self.in_flight.take().is_some() {
+            self.idr_wanted = true;
+        }
+    }
+
+    /// When the runner should call [`Self::poll_frame`] again, if a frame is waiting for its slot.
+    pub fn next_wakeup(&self) -> Option<Instant> {
+        let waiting = self.pending.is_some() || (self.idr_wanted && self.last_rendered.is_some());
+        if self.in_flight.is_some() || !waiting {
+            return None;
+        }
+        self.next_slot
+    }
+
+    fn repeat_pose(&self, now: Instant) -> Option<PendingPose> {
+        self.last_rendered.map(|p| PendingPose { received_at: now, ..p })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+    use nephele_renderer::Intrinsics;
+
+    const W: u32 = 64;
+    const H: u32 = 48;
+
+    fn pose(seq: u32, azimuth_deg: f64) -> Vec<u8> {
+        let view = View::orbit(DVec3::ZERO, 4.0, azimuth_deg, 20.0, Intrinsics::from_fov_x(W, H, 0.8));
+        PoseMessage {
+            seq,
+            t_client_ms: f64::from(seq) * 20.0,
+            world_from_camera: view.world_from_camera.as_mat4(),
+            intrinsics: view.intrinsics,
+            world_from_anchor: None,
+        }
+        .encode()
+    }
+
+    fn ms(t0: Instant, ms: u64) -> Instant {
+        t0 + Duration::from_millis(ms)
+    }
+
+    #[test]
+    fn nothing_before_the_first_pose_then_an_idr() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 50);
+        assert_eq!(s.poll_frame(t0), None);
+        assert_eq!(s.next_wakeup(), None);
+        // A PLI before any pose does not invent a frame.
+        assert!(!s.on_picture_loss(t0));
+        assert_eq!(s.poll_frame(ms(t0, 5)), None);
+        s.on_pose(&pose(1, 0.0), ms(t0, 10)).unwrap();
+        let job = s.poll_frame(ms(t0, 10)).unwrap();
+        assert!(job.idr && job.frame == 1 && job.pose.seq == 1);
+        assert!(!job.same_as_previous);
+    }
+
+    #[test]
+    fn latest_pose_wins_and_frames_are_paced() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 25); // 40 ms period
+        s.on_pose(&pose(1, 0.0), t0).unwrap();
+        let job = s.poll_frame(t0).unwrap();
+        // While a frame is in flight, new poses queue; only the newest survives.
+        s.on_pose(&pose(2, 1.0), ms(t0, 10)).unwrap();
+        s.on_pose(&pose(4, 3.0), ms(t0, 20)).unwrap();
+        assert_eq!(s.on_pose(&pose(3, 2.0), ms(t0, 21)), Ok(false), "reordered older pose is dropped");
+        assert_eq!(s.poll_frame(ms(t0, 25)), None, "one frame in flight");
+        let info = s.frame_done(FrameTimes { render_ms: 5.0, ..Default::default() }).unwrap();
+        assert_eq!((info.frame, info.pose_seq), (1, 1));
+        assert_eq!(info.t_client_ms, 20.0);
+        // The slot opens 40 ms after the previous start.
+        assert_eq!(s.next_wakeup(), Some(ms(t0, 40)));
+        assert_eq!(s.poll_frame(ms(t0, 39)), None);
+        let job2 = s.poll_frame(ms(t0, 40)).unwrap();
+        assert_eq!((job2.frame, job2.pose.seq), (2, 4));
+        assert!(!job2.idr);
+        assert!((job2.started_at.duration_since(job2.pose.received_at).as_millis()) == 20);
+        let c = s.counters();
+        assert_eq!((c.poses_accepted, c.poses_stale, c.poses_superseded), (3, 1, 1));
+        let _ = job;
+    }
+
+    #[test]
+    fn at_most_fps_frames_per_second_under_a_pose_flood() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 30);
+        let mut frames = 0;
+        let mut seq = 0;
+        // Poses every 1 ms for 2 s, rendering takes 3 ms.
+        for t in 0..2000u64 {
+            seq += 1;
+            s.on_pose(&pose(seq, t as f64 * 0.1), ms(t0, t)).unwrap();
+            if s.poll_frame(ms(t0, t)).is_some() {
+                frames += 1;
+            }
+            if t % 3 == 2 {
+                s.frame_done(FrameTimes::default());
+            }
+        }
+        assert!((59..=61).contains(&frames), "{frames} frames in 2 s at 30 fps");
+    }
+
+    #[test]
+    fn bad_poses_are_refused_and_the_last_good_pose_is_kept() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 50);
+        s.on_pose(&pose(1, 0.0), t0).unwrap();
+        let mut nan = pose(2, 5.0);
+        nan[20..24].copy_from_slice(&f32::NAN.to_le_bytes());
+        assert!(s.on_pose(&nan, t0).is_err());
+        assert!(s.on_pose(&pose(3, 5.0)[..50], t0).is_err());
+        assert!(s.on_pose(&[0u8; 4096], t0).is_err());
+        let job = s.poll_frame(t0).unwrap();
+        assert_eq!(job.pose.seq, 1);
+        // A refused pose does not advance the sequence: seq 2 may still come, valid.
+        s.frame_done(FrameTimes::default());
+        assert_eq!(s.on_pose(&pose(2, 5.0), ms(t0, 30)), Ok(true));
+        assert_eq!(s.counters().poses_rejected, 3);
+    }
+
+    #[test]
+    fn picture_loss_forces_an_idr_even_for_a_still_camera() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 50);
+        s.on_pose(&pose(1, 0.0), t0).unwrap();
+        s.poll_frame(t0).unwrap();
+        s.frame_done(FrameTimes::default());
+        assert!(!s.on_picture_loss(ms(t0, 100)), "within 250 ms of the first IDR");
+        assert!(s.on_picture_loss(ms(t0, 300)));
+        assert!(!s.on_picture_loss(ms(t0, 301)), "already owed");
+        assert_eq!(s.next_wakeup(), Some(ms(t0, 20)));
+        let job = s.poll_frame(ms(t0, 300)).unwrap();
+        assert!(job.idr && job.same_as_previous && job.pose.seq == 1);
+        s.frame_done(FrameTimes::default());
+        assert_eq!(s.poll_frame(ms(t0, 400)), None, "no new pose, no IDR owed: nothing to do");
+    }
+
+    #[test]
+    fn a_failed_frame_makes_the_next_one_an_idr() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 50);
+        s.on_pose(&pose(1, 0.0), t0).unwrap();
+        s.poll_frame(t0).unwrap();
+        s.frame_done(FrameTimes::default());
+        s.on_pose(&pose(2, 1.0), ms(t0, 20)).unwrap();
+        s.poll_frame(ms(t0, 20)).unwrap();
+        s.frame_failed();
+        s.on_pose(&pose(3, 2.0), ms(t0, 40)).unwrap();
+        assert!(s.poll_frame(ms(t0, 40)).unwrap().idr);
+    }
+}

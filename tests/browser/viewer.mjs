@@ -1,0 +1,182 @@
+// viewer.mjs — headless Chromium end-to-end check of the Nephele web pages against a running
+// server: `node tests/browser/viewer.mjs http://127.0.0.1:PORT/`.
+//
+// 1. Opens the viewer (640×480), waits for ≥ 10 decoded frames (getStats via window.nephele).
+// 2. Grabs the shown video frame (image A), drags the mouse ~200 px across the video, waits for
+//    a frame info answering a pose sent after the drag plus ≥ 5 more decoded frames, grabs
+//    image B, and requires a mean absolute RGB difference > 2 (the scene turned).
+// 3. Opens ar.html and waits for ≥ 5 decoded frames there.
+// Neither page may report errors. Prints one JSON line ({"ok":true,...} or {"ok":false,
+// "error":...}) and exits 0 or 1. The whole run is limited to 120 s.
+
+import fs from 'node:fs';
+import os from 'node:os';
+import path from 'node:path';
+import { chromium } from 'playwright-core';
+
+const TOTAL_TIMEOUT_MS = 120_000;
+const base = process.argv[2];
+if (!base) {
+  console.log(JSON.stringify({ ok: false, error: 'usage: node tests/browser/viewer.mjs <base-url>' }));
+  process.exit(1);
+}
+
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+/** Poll `probe()` until `done(value)` holds; throws `what` with the last value on timeout. */
+async function waitFor(what, probe, done, timeoutMs) {
+  const end = Date.now() + timeoutMs;
+  let last;
+  for (;;) {
+    last = await probe();
+    if (done(last)) return last;
+    if (Date.now() > end) throw new Error(`timed out waiting for ${what}; last: ${JSON.stringify(last)}`);
+    await sleep(250);
+  }
+}
+
+// What a page says about itself (window.nephele), in one round trip.
+const snapshot = (page) => page.evaluate(async () => {
+  const n = window.nephele;
+  if (!n) return { ready: false };
+  const s = await n.stats();
+  return {
+    ready: true,
+    state: n.state,
+    banner: n.banner,
+    framesDecoded: s.framesDecoded,
+    frameWidth: s.frameWidth,
+    frameHeight: s.frameHeight,
+    poseSeq: n.poseSeq,
+    frameSeq: n.lastFrame ? n.lastFrame.pose_seq : 0,
+    errors: n.errors,
+  };
+});
+
+// Draw the video's current frame into a canvas; keep the pixels in the page under `slot`.
+const grab = (page, slot) => page.evaluate((slot) => {
+  const v = document.querySelector('video');
+  const c = document.createElement('canvas');
+  c.width = v.videoWidth;
+  c.height = v.videoHeight;
+  const g = c.getContext('2d', { willReadFrequently: true });
+  g.drawImage(v, 0, 0);
+  window.__nepheleTest = window.__nepheleTest || {};
+  window.__nepheleTest[slot] = g.getImageData(0, 0, c.width, c.height);
+  return { width: c.width, height: c.height };
+}, slot);
+
+// Mean absolute difference over R, G, B of two grabbed frames of the same size.
+const meanAbsDiff = (page, a, b) => page.evaluate(([a, b]) => {
+  const A = window.__nepheleTest[a], B = window.__nepheleTest[b];
+  if (A.width !== B.width || A.height !== B.height) throw new Error(`frame size changed: ${A.width}x${A.height} → ${B.width}x${B.height}`);
+  let sum = 0;
+  for (let i = 0; i < A.data.length; i += 4) {
+    sum += Math.abs(A.data[i] - B.data[i]) + Math.abs(A.data[i + 1] - B.data[i + 1]) + Math.abs(A.data[i + 2] - B.data[i + 2]);
+  }
+  return sum / ((A.data.length / 4) * 3);
+}, [a, b]);
+
+function noErrors(name, snap, pageErrors) {
+  if (pageErrors.length) throw new Error(`${name}: uncaught page error: ${pageErrors[0]}`);
+  if (snap.errors && snap.errors.length) throw new Error(`${name}: page reported errors: ${JSON.stringify(snap.errors)}`);
+}
+
+async function openPage(context, url) {
+  const page = await context.newPage();
+  const pageErrors = [];
+  page.on('pageerror', (err) => pageErrors.push(String(err && err.message ? err.message : err)));
+  await page.goto(url, { waitUntil: 'load' });
+  return { page, pageErrors };
+}
+
+async function run(context) {
+  const result = { ok: true };
+
+  // ── viewer ──
+  const viewerUrl = new URL('index.html?size=640x480', base).href;
+  const { page, pageErrors } = await openPage(context, viewerUrl);
+  await waitFor('window.nephele on the viewer', () => snapshot(page), (s) => s.ready, 10_000);
+  const first = await waitFor('10 decoded frames on the viewer', () => snapshot(page),
+    (s) => s.framesDecoded >= 10 || (s.errors && s.errors.length > 0) || pageErrors.length > 0, 60_000);
+  noErrors('viewer', first, pageErrors);
+  if (first.framesDecoded < 10) throw new Error(`viewer decoded only ${first.framesDecoded} frames`);
+
+  const size = await grab(page, 'A');
+
+  // Drag horizontally across the middle of the video by 200 px.
+  const box = await page.locator('video').boundingBox();
+  const cx = box.x + box.width / 2, cy = box.y + box.height / 2;
+  await page.mouse.move(cx - 100, cy);
+  await page.mouse.down();
+  await page.mouse.move(cx + 100, cy, { steps: 20 });
+  await page.mouse.up();
+  const afterDrag = await snapshot(page);
+
+  await waitFor('a frame answering a pose sent after the drag', () => snapshot(page),
+    (s) => s.frameSeq > afterDrag.poseSeq && s.framesDecoded >= afterDrag.framesDecoded + 5, 20_000);
+  await sleep(200); // let the jitter buffer hand the newest frame to the <video>
+  await grab(page, 'B');
+  const diff = await meanAbsDiff(page, 'A', 'B');
+  const end = await snapshot(page);
+  noErrors('viewer', end, pageErrors);
+  if (!(diff > 2.0)) throw new Error(`the view did not change after dragging (mean abs diff ${diff.toFixed(3)} ≤ 2)`);
+  Object.assign(result, { framesDecoded: end.framesDecoded, meanAbsDiff: Number(diff.toFixed(3)), width: size.width, height: size.height });
+  await page.close({ runBeforeUnload: false });
+
+  // ── AR ──
+  const ar = await openPage(context, new URL('ar.html', base).href);
+  await waitFor('window.nephele on the AR page', () => snapshot(ar.page), (s) => s.ready, 10_000);
+  const arSnap = await waitFor('5 decoded frames on the AR page', () => snapshot(ar.page),
+    (s) => s.framesDecoded >= 5 || (s.errors && s.errors.length > 0) || ar.pageErrors.length > 0, 60_000);
+  noErrors('ar', arSnap, ar.pageErrors);
+  result.arFramesDecoded = arSnap.framesDecoded;
+  await ar.page.close({ runBeforeUnload: false });
+  return result;
+}
+
+async function main() {
+  const userDataDir = fs.mkdtempSync(path.join(os.tmpdir(), 'nephele-chromium-'));
+  let context = null;
+  let timer = null;
+  try {
+    const timeout = new Promise((_, reject) => {
+      timer = setTimeout(() => reject(new Error(`whole run exceeded ${TOTAL_TIMEOUT_MS / 1000} s`)), TOTAL_TIMEOUT_MS);
+    });
+    const work = (async () => {
+      context = await chromium.launchPersistentContext(userDataDir, {
+        executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
+        headless: true,
+        viewport: { width: 1024, height: 768 },
+        args: [
+          '--no-sandbox',
+          '--use-fake-ui-for-media-stream',
+          '--use-fake-device-for-media-stream',
+          '--allow-loopback-in-peer-connection',
+          '--disable-features=WebRtcHideLocalIpsWithMdns',
+          '--disable-background-networking',
+          '--disable-component-update',
+          '--disable-sync',
+          '--no-first-run',
+        ],
+      });
+      return run(context);
+    })();
+    const result = await Promise.race([work, timeout]);
+    console.log(JSON.stringify(result));
+    process.exitCode = 0;
+  } catch (err) {
+    // Playwright's messages carry a call log with terminal colours: keep the first line.
+    const text = String(err && err.message ? err.message : err).replace(/\u001b\[[0-9;]*m/g, '').split('\n')[0];
+    console.log(JSON.stringify({ ok: false, error: text }));
+    process.exitCode = 1;
+  } finally {
+    clearTimeout(timer);
+    if (context) await Promise.race([context.close().catch(() => {}), sleep(10_000)]);
+    fs.rmSync(userDataDir, { recursive: true, force: true });
+  }
+  // A launch still in flight when the timeout hit would keep the process alive.
+  process.exit(process.exitCode);
+}
+
+main();

@@ -1,0 +1,88 @@
+// viewer.js — logic of the viewer page (index.html): fills the scene picker from /scenes,
+// connects on load and again when a picker changes, steers an orbit camera with mouse/touch
+// (left-drag orbit, wheel zoom, right/shift-drag pan; one finger orbit, two fingers
+// pinch/pan), and shows the HUD (fps, latency, bitrate, resolution, frame, state) and an
+// error banner. The session itself (signaling, WebRTC, poses, stats) is in nephele.js.
+
+import {
+  OrbitCamera, attachOrbitControls, Connection, ensureCapturePermission,
+  fetchScenes, readPageOptions, hudLines,
+} from './nephele.js';
+
+const $ = (id) => document.getElementById(id);
+const video = $('video');
+const sceneSelect = $('scene');
+const sizeSelect = $('size');
+
+const options = readPageOptions();
+const camera = new OrbitCamera();
+let cameraScene = null; // scene the camera was last reset for; a reconnect keeps the view
+
+const conn = new Connection({
+  mode: 'viewer',
+  video,
+  camera,
+  onSession(msg) {
+    // First session of a scene: frame the asset. A reconnect to the same scene keeps the view.
+    if (msg.scene !== cameraScene && Array.isArray(msg.center)) {
+      camera.reset(msg.center, msg.radius);
+      cameraScene = msg.scene;
+    }
+  },
+  onChange: render,
+});
+conn.exposeApi();
+
+// The capture grant only unlocks loopback ICE candidates; the camera image is never used,
+// so disable the track (keeps the grant, lets browsers turn the camera light off).
+ensureCapturePermission({ video: true }).then((s) => s?.getTracks().forEach((t) => { t.enabled = false; }));
+
+// The displayed image height in CSS pixels (the video is letterboxed with object-fit: contain).
+function shownHeight() {
+  const r = video.getBoundingClientRect();
+  const w = conn.params?.width || 640, h = conn.params?.height || 480;
+  return Math.min(r.height, (r.width * h) / w);
+}
+attachOrbitControls($('stage'), camera, { viewportHeight: shownHeight });
+
+function render() {
+  $('state').textContent = conn.state;
+  $('state').dataset.state = conn.state;
+  const banner = $('banner');
+  banner.hidden = !conn.banner;
+  if (conn.banner) {
+    banner.textContent = conn.banner.text;
+    banner.dataset.kind = conn.banner.kind;
+  }
+  const hud = $('hud');
+  hud.replaceChildren(...hudLines(conn).flatMap(([k, v]) => {
+    const dt = document.createElement('dt'); dt.textContent = k;
+    const dd = document.createElement('dd'); dd.textContent = v;
+    return [dt, dd];
+  }));
+}
+
+function connectFromPickers() {
+  const [width, height] = sizeSelect.value.split('x').map(Number);
+  const scene = sceneSelect.value;
+  if (scene !== cameraScene) cameraScene = null; // new scene: reframe when its session arrives
+  conn.connect({ scene, width, height, fps: options.fps, token: options.token });
+}
+
+async function main() {
+  render();
+  // A size from the URL that is not in the list becomes an extra option.
+  const size = `${options.width}x${options.height}`;
+  if (![...sizeSelect.options].some((o) => o.value === size)) sizeSelect.add(new Option(size.replace('x', '×'), size));
+  sizeSelect.value = size;
+
+  const { scenes, default: def } = await fetchScenes();
+  sceneSelect.replaceChildren(...scenes.map((s) => new Option(s, s)));
+  sceneSelect.value = options.scene && scenes.includes(options.scene) ? options.scene : def;
+
+  sceneSelect.addEventListener('change', connectFromPickers);
+  sizeSelect.addEventListener('change', connectFromPickers);
+  connectFromPickers();
+}
+
+main();
