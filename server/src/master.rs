@@ -79,7 +79,7 @@ async fn connect_once(url: &str, cfg: &MasterConfig, farm: &Arc<Farm>, api: &Arc
 
     let (out_tx, mut out_rx) = mpsc::unbounded_channel::<ToSignal>();
     let mut sessions: HashMap<String, mpsc::UnboundedSender<Command>> = HashMap::new();
-    let (gone_tx, mut gone_rx) = mpsc::unbounded_channel::<String>();
+    let (gone_tx, mut gone_rx) = mpsc::unbounded_channel::<(String, String)>();
     let mut heartbeat = tokio::time::interval(HEARTBEAT_EVERY);
     loop {
         tokio::select! {
@@ -107,7 +107,6 @@ async fn connect_once(url: &str, cfg: &MasterConfig, farm: &Arc<Farm>, api: &Arc
                                 let (api, gone) = (Arc::clone(api), gone_tx.clone());
                                 tokio::spawn(async move {
                                     let id = ctx.id.clone();
-                                    let to_signal = ctx.to_signal.clone();
                                     // The session body runs in its own task so that a panic
                                     // inside it ends this session only.
                                     let outcome = tokio::spawn(run_session(ctx, api, cmd_rx)).await;
@@ -117,8 +116,7 @@ async fn connect_once(url: &str, cfg: &MasterConfig, farm: &Arc<Farm>, api: &Arc
                                         Err(e) => format!("internal error in the session ({e})"),
                                     };
                                     tracing::info!(session = %id, %reason, "session ended");
-                                    let _ = to_signal.send(ToSignal::End { session: id.clone(), reason });
-                                    let _ = gone.send(id);
+                                    let _ = gone.send((id, reason));
                                 });
                             }
                         }
@@ -138,12 +136,14 @@ async fn connect_once(url: &str, cfg: &MasterConfig, farm: &Arc<Farm>, api: &Arc
                 }
             }
             Some(out) = out_rx.recv() => {
-                let ended = match &out { ToSignal::End { session, .. } => sessions.contains_key(session).then(|| session.clone()), _ => None };
-                // A session that the client already left needs no `end`.
-                if matches!(out, ToSignal::End { .. }) && ended.is_none() { continue }
                 ws_tx.send(Message::text(serde_json::to_string(&out)?)).await?;
             }
-            Some(id) = gone_rx.recv() => { sessions.remove(&id); }
+            Some((session, reason)) = gone_rx.recv() => {
+                // A session the client already left (removed on `leave`) needs no `end`.
+                if sessions.remove(&session).is_some() {
+                    ws_tx.send(Message::text(serde_json::to_string(&ToSignal::End { session, reason })?)).await?;
+                }
+            }
             _ = heartbeat.tick() => {
                 let hb = ToSignal::Heartbeat { sessions: sessions.len() as u32 };
                 ws_tx.send(Message::text(serde_json::to_string(&hb)?)).await?;

@@ -22,14 +22,25 @@ pub async fn spawn_local(listener: tokio::net::TcpListener, farm: Arc<Farm>, cfg
     let hub = nephele_signaling::HubConfig { token: cfg.token.clone(), ..Default::default() };
     let signaling = nephele_signaling::SignalState::new(hub);
     signaling.spawn_tick_task();
-    let app = router(signaling, Arc::clone(&farm));
+    let app = router(signaling.clone(), Arc::clone(&farm));
     tokio::spawn(async move {
         if let Err(e) = axum::serve(listener, app).await {
             tracing::error!("HTTP server failed: {e}");
         }
     });
-    tokio::spawn(master::run(format!("ws://{addr}/signal"), cfg, farm));
-    Ok(addr)
+    tokio::spawn(async move {
+        if let Err(e) = master::run(format!("ws://{addr}/signal"), cfg, farm).await {
+            tracing::error!("master stopped: {e:#}");
+        }
+    });
+    // Ready when the master has registered (a join before that would find no capacity).
+    for _ in 0..200 {
+        if !signaling.stats().masters.is_empty() {
+            return Ok(addr);
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(25)).await;
+    }
+    Err(std::io::Error::other("the local master did not register with signaling within 5 s"))
 }
 
 /// (URL path, content type, body) of every page file.

@@ -1,0 +1,293 @@
+//! End to end through the real server in this process: signaling + master + CPU renderer,
+//! real WebRTC peers on loopback, real OpenH264 encode and decode.
+//!
+//! - replay: every decoded frame answers a pose that was sent; PSNR vs a direct render ≥ 30 dB;
+//! - AR: the green keyed out of the decoded video matches the renderer's alpha (IoU ≥ 0.95);
+//! - PLI brings an IDR; a full master says `no_capacity`;
+//! - bad input on one session (signaling and pose channel) gets clear errors while another
+//!   session keeps streaming.
+
+use std::{
+    net::SocketAddr,
+    path::PathBuf,
+    sync::{
+        Arc,
+        atomic::{AtomicBool, AtomicUsize, Ordering},
+    },
+    time::Duration,
+};
+
+use bytes::Bytes;
+use futures_util::{SinkExt, StreamExt};
+use glam::Mat4;
+use nephele::{
+    client::{ClientOptions, StreamClient},
+    farm::Farm,
+    master::MasterConfig,
+    replay::{ReplayOptions, Trace, replay},
+    rtc::RtcConfig,
+    web,
+    wire::{PoseMessage, ToViewer},
+};
+use nephele_renderer::{CpuBackend, RenderSettings};
+use nephele_signaling::Mode;
+use serde_json::Value;
+use tokio_tungstenite::tungstenite::Message;
+
+fn fixture() -> String {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/assets/trio-small.nolf");
+    format!("trio={}", p.display())
+}
+
+async fn start_server(capacity: u32) -> (SocketAddr, Arc<Farm>) {
+    let farm = Arc::new(Farm::load(&[fixture()], &CpuBackend, RenderSettings::default()).expect("fixture asset"));
+    let cfg = MasterConfig { name: "test".into(), capacity, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] } };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    (web::spawn_local(listener, Arc::clone(&farm), cfg).await.unwrap(), farm)
+}
+
+fn client_opts(addr: SocketAddr, mode: Mode, width: u32, height: u32) -> ClientOptions {
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, keep_pixels: true }
+}
+
+fn short_trace(name: &str, poses: usize) -> Trace {
+    let mut t = Trace::builtin(name).unwrap();
+    t.poses.truncate(poses);
+    t
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
+    let (addr, farm) = start_server(4).await;
+    let trace = short_trace("orbit", 100);
+    let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2) };
+    let scene = &farm.scenes["trio"];
+    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), farm.settings))).await.unwrap();
+    println!("{report}");
+    assert!(report.frames_decoded >= 5, "only {} frames decoded", report.frames_decoded);
+    assert_eq!(report.frames_unknown_pose, 0, "frames answering poses never sent");
+    assert_eq!(report.frames_without_pose, 0, "frames without a pose SEI");
+    assert!(report.errors.is_empty(), "{:?}", report.errors);
+    assert!(report.quality.len() >= 3, "{} frames compared", report.quality.len());
+    let min = report.min_psnr().unwrap();
+    assert!(min >= 30.0, "PSNR {min:.2} dB < 30 dB: {:?}", report.quality);
+    assert!(report.latency_ms.p50 > 0.0 && report.latency_ms.p50.is_finite());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ar_keyed_alpha_matches_the_renderer_alpha() {
+    let (addr, farm) = start_server(4).await;
+    let trace = short_trace("zoom", 60);
+    // The object placed on a "table": moved and scaled, as the AR page's plane anchor does.
+    let anchor = Mat4::from_scale_rotation_translation(glam::Vec3::splat(0.8), glam::Quat::IDENTITY, glam::Vec3::new(0.2, -0.1, 0.0));
+    let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2) };
+    let scene = &farm.scenes["trio"];
+    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), farm.settings))).await.unwrap();
+    println!("{report}");
+    assert!(report.errors.is_empty(), "{:?}", report.errors);
+    assert!(report.quality.len() >= 3, "{} frames compared", report.quality.len());
+    let iou = report.min_iou().unwrap();
+    assert!(iou >= 0.95, "keyed mask IoU {iou:.4} < 0.95: {:?}", report.quality);
+}
+
+/// Sends poses of a slow orbit every 20 ms until `stop`.
+fn keep_posing(client: Arc<StreamClient>, width: u32, height: u32, stop: Arc<AtomicBool>) -> tokio::task::JoinHandle<()> {
+    let trace = Trace::builtin("orbit").unwrap();
+    tokio::spawn(async move {
+        let mut seq = 0u32;
+        while !stop.load(Ordering::Relaxed) {
+            seq += 1;
+            let m = PoseMessage {
+                seq,
+                t_client_ms: f64::from(seq) * 20.0,
+                world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
+                intrinsics: trace.intrinsics(width, height),
+                world_from_anchor: None,
+            };
+            if client.send_pose(&m).await.is_err() {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+}
+
+/// Collects a client's frames and messages in the background.
+struct Watch {
+    frames: Arc<AtomicUsize>,
+    messages: tokio::sync::mpsc::UnboundedReceiver<ToViewer>,
+}
+
+fn watch(client: &mut StreamClient) -> Watch {
+    let frames = Arc::new(AtomicUsize::new(0));
+    let (mut rx_frames, mut rx_msgs) = (std::mem::replace(&mut client.frames, tokio::sync::mpsc::unbounded_channel().1), std::mem::replace(&mut client.messages, tokio::sync::mpsc::unbounded_channel().1));
+    let count = Arc::clone(&frames);
+    tokio::spawn(async move {
+        while rx_frames.recv().await.is_some() {
+            count.fetch_add(1, Ordering::Relaxed);
+        }
+    });
+    let (tx, messages) = tokio::sync::mpsc::unbounded_channel();
+    tokio::spawn(async move {
+        while let Some(m) = rx_msgs.recv().await {
+            let _ = tx.send(m);
+        }
+    });
+    Watch { frames, messages }
+}
+
+async fn next_error(w: &mut Watch) -> (String, String) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        match tokio::time::timeout_at(deadline, w.messages.recv()).await {
+            Ok(Some(ToViewer::Error { code, message })) => return (code, message),
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("channel closed"),
+            Err(_) => panic!("no error message within 10 s"),
+        }
+    }
+}
+
+/// Raw signaling: send text frames, return the first reply.
+async fn signal_exchange(addr: SocketAddr, messages: &[&str]) -> Value {
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/signal")).await.unwrap();
+    for m in messages {
+        ws.send(Message::text(m.to_string())).await.unwrap();
+    }
+    loop {
+        let msg = tokio::time::timeout(Duration::from_secs(15), ws.next()).await.expect("a reply within 15 s").expect("open").expect("ok");
+        if let Message::Text(t) = msg {
+            let v: Value = serde_json::from_str(&t).unwrap();
+            if v["type"] != "joined" {
+                return v;
+            }
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_input_gets_clear_errors_while_another_session_keeps_streaming() {
+    let (addr, _) = start_server(8).await;
+    let (w, h) = (160, 120);
+    // Session A streams all along.
+    let mut a = StreamClient::connect(&client_opts(addr, Mode::Viewer, w, h)).await.unwrap();
+    let a_watch = watch(&mut a);
+    let a = Arc::new(a);
+    let stop = Arc::new(AtomicBool::new(false));
+    let posing = keep_posing(Arc::clone(&a), w, h, Arc::clone(&stop));
+    let wait_frames = |watch: &Watch, more: usize| {
+        let (count, start) = (Arc::clone(&watch.frames), watch.frames.load(Ordering::Relaxed));
+        async move {
+            let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+            while count.load(Ordering::Relaxed) < start + more {
+                assert!(tokio::time::Instant::now() < deadline, "session A stalled at {} frames", count.load(Ordering::Relaxed));
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+    };
+    wait_frames(&a_watch, 3).await;
+
+    // Signaling-level garbage, each on its own connection.
+    let cases: &[(&[&str], &str, &str)] = &[
+        (&["{not json"], "bad_message", ""),
+        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":100000,"height":480,"fps":50}"#], "bad_request", "100000x480"),
+        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":7680,"height":4320,"fps":50}"#], "rejected", "3840x2160"),
+        (&[r#"{"type":"join","scene":"nope","mode":"viewer","width":64,"height":64,"fps":50}"#], "rejected", "unknown scene"),
+        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":50}"#, r#"{"type":"offer","sdp":"garbage"}"#], "", "bad offer"),
+    ];
+    for (msgs, code, words) in cases {
+        println!("case {msgs:?}");
+        let reply = signal_exchange(addr, msgs).await;
+        let text = reply.to_string();
+        if code.is_empty() {
+            assert_eq!(reply["type"], "ended", "{text}");
+            assert!(reply["reason"].as_str().unwrap().contains(words), "{text}");
+        } else {
+            assert_eq!(reply["type"], "error", "{text}");
+            assert_eq!(reply["code"], *code, "{text}");
+            assert!(reply["message"].as_str().unwrap().contains(words), "{text}");
+        }
+        wait_frames(&a_watch, 1).await;
+    }
+
+    // Session B sends bad poses; each is refused with a reason, B keeps its session.
+    let mut b = StreamClient::connect(&client_opts(addr, Mode::Viewer, w, h)).await.unwrap();
+    let mut b_watch = watch(&mut b);
+    let good = |seq: u32| {
+        let t = Trace::builtin("orbit").unwrap();
+        PoseMessage { seq, t_client_ms: 1.0, world_from_camera: Mat4::from_cols_array(&t.poses[3]), intrinsics: t.intrinsics(w, h), world_from_anchor: None }.encode()
+    };
+    let with = |mut bytes: Vec<u8>, offset: usize, v: f32| {
+        bytes[offset..offset + 4].copy_from_slice(&v.to_le_bytes());
+        bytes
+    };
+    let mut long = good(1);
+    long.extend_from_slice(&[0; 9]);
+    let bad: Vec<(Vec<u8>, &str)> = vec![
+        (good(1)[..50].to_vec(), "bytes"),
+        (long, "bytes"),
+        (vec![0u8; 3000], "bytes"),
+        (with(good(1), 16, f32::NAN), "finite"),
+        (with(good(1), 76, f32::INFINITY), "finite"),
+        (with(good(1), 16, 2.5), "rigid"),
+        (with(good(1), 80, -5.0), "intrinsics"),
+        (with(good(1), 96, 9.0), "viewport"), // width field as f32 bits: an absurd width
+    ];
+    for (bytes, words) in bad {
+        b.send_bytes(Bytes::from(bytes)).await.unwrap();
+        let (code, message) = next_error(&mut b_watch).await;
+        assert_eq!(code, "bad_pose");
+        assert!(message.to_lowercase().contains(words), "{message:?} should mention {words:?}");
+    }
+    b.send_text("hello").await.unwrap();
+    let (code, message) = next_error(&mut b_watch).await;
+    assert_eq!(code, "bad_pose");
+    assert!(message.contains("binary"), "{message}");
+    b.send_bytes(vec![7u8; 10_000].into()).await.unwrap();
+    let (_, message) = next_error(&mut b_watch).await;
+    assert!(message.contains("limit"), "{message}");
+    // Nothing was rendered for B yet; a good pose now gets its frame.
+    assert_eq!(b_watch.frames.load(Ordering::Relaxed), 0, "a refused pose must not be rendered");
+    b.send_bytes(good(1).into()).await.unwrap();
+    wait_frames(&b_watch, 1).await;
+    wait_frames(&a_watch, 3).await;
+
+    stop.store(true, Ordering::Relaxed);
+    posing.await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn picture_loss_brings_an_idr_and_a_full_master_says_no_capacity() {
+    let (addr, _) = start_server(1).await;
+    let (w, h) = (160, 120);
+    let mut a = StreamClient::connect(&client_opts(addr, Mode::Viewer, w, h)).await.unwrap();
+    let reply = signal_exchange(addr, &[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":50}"#]).await;
+    assert_eq!(reply["code"], "no_capacity", "{reply}");
+
+    let mut w_a = watch(&mut a);
+    let a = Arc::new(a);
+    let stop = Arc::new(AtomicBool::new(false));
+    let posing = keep_posing(Arc::clone(&a), w, h, Arc::clone(&stop));
+    let mut frames = Vec::new();
+    let mut pli_sent_after = None;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let m = tokio::time::timeout_at(deadline, w_a.messages.recv()).await.expect("frames keep coming").unwrap();
+        let ToViewer::Frame(info) = m else { continue };
+        frames.push(info);
+        if frames.len() == 3 {
+            a.send_pli().await.unwrap();
+            pli_sent_after = Some(info.frame);
+        }
+        if let Some(after) = pli_sent_after
+            && info.frame > after
+            && info.idr
+        {
+            break;
+        }
+    }
+    assert!(frames[0].idr, "the first frame is an IDR");
+    assert!(frames.iter().skip(1).filter(|f| f.idr).count() == 1, "exactly one more IDR: {:?}", frames.iter().map(|f| f.idr).collect::<Vec<_>>());
+    stop.store(true, Ordering::Relaxed);
+    posing.await.unwrap();
+}
