@@ -77,7 +77,8 @@ impl TextureCubes {
     /// (clamped to the border cell, as the GPU kernel does).
     pub fn sample<const C: usize>(&self, p: Vec3) -> [f32; C] {
         let g = self.to_fine(p);
-        let cell = (g / self.brick as f32).floor().clamp(Vec3::ZERO, Vec3::splat(self.grid as f32 - 1.0));
+        // Truncate-then-clamp equals floor-then-clamp for every input (negatives clamp to 0).
+        let cell = (g / self.brick as f32).as_ivec3().as_vec3().clamp(Vec3::ZERO, Vec3::splat(self.grid as f32 - 1.0));
         let brick = self.brick_at(cell.as_uvec3());
         if brick < 0 {
             return [0.0; C];
@@ -91,7 +92,9 @@ impl TextureCubes {
         debug_assert_eq!(C, self.channels as usize);
         let r = self.brick as f32;
         let u = (g - cell * r).clamp(Vec3::ZERO, Vec3::splat(r));
-        let base = u.floor().min(Vec3::splat(r - 1.0));
+        // u ≥ 0, so truncation is floor (and stays inline; `floor` is a libm call on
+        // baseline x86-64).
+        let base = u.as_uvec3().as_vec3().min(Vec3::splat(r - 1.0));
         let f = u - base;
         let base = base.as_uvec3();
         let e = self.brick as usize + 1;

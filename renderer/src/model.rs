@@ -151,14 +151,14 @@ pub fn march(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSett
 }
 
 /// Shades a hit: returns `(rgb over bg, α)`.
-pub fn shade(asset: &Asset, p_hit: Vec3, d: Vec3, alpha_c: f32, bg: Vec3) -> (Vec3, f32) {
+pub fn shade(asset: &Asset, net: &crate::mlp::MlpKernel, p_hit: Vec3, d: Vec3, alpha_c: f32, bg: Vec3) -> (Vec3, f32) {
     let [r, g, b, tint] = asset.diffuse.sample::<4>(p_hit);
     let features = asset.psh.features as usize;
     let mut x = [0.0f32; crate::mlp::MAX_INPUT];
     asset.psh.encode(p_hit, &mut x[..features]);
     x[features..features + 16].copy_from_slice(&sh4(d));
     x[features + 16] = alpha_c;
-    let o = asset.mlp.forward(&x[..features + 17]);
+    let o = net.forward(&x[..features + 17]);
     let c_s = Vec3::new(sigmoid(o[0]), sigmoid(o[1]), sigmoid(o[2]));
     let alpha = sigmoid(o[3]);
     let c = (Vec3::new(r, g, b) + tint * c_s).clamp(Vec3::ZERO, Vec3::ONE);

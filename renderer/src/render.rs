@@ -154,14 +154,16 @@ impl Frame {
 #[derive(Debug, Default, Clone, Copy)]
 pub struct CpuBackend;
 
-struct CpuPrepared(Arc<Asset>);
+/// The asset plus its network in the CPU's SIMD layout.
+struct CpuPrepared(Arc<Asset>, crate::mlp::MlpKernel);
 
 impl Backend for CpuBackend {
     fn name(&self) -> String {
         "cpu".into()
     }
     fn prepare(&self, asset: Arc<Asset>) -> Result<Box<dyn PreparedAsset>, RenderError> {
-        Ok(Box::new(CpuPrepared(asset)))
+        let net = asset.mlp.kernel();
+        Ok(Box::new(CpuPrepared(asset, net)))
     }
 }
 
@@ -207,7 +209,7 @@ impl PreparedAsset for CpuPrepared {
                         return ([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY);
                     }
                     let (o, d) = f.ray(i as u32 % w, i as u32 / w);
-                    let (rgb, a) = model::shade(asset, o + m.t_hit * d, d, m.alpha_c, req.background);
+                    let (rgb, a) = model::shade(asset, &self.1, o + m.t_hit * d, d, m.alpha_c, req.background);
                     ([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale)
                 })
                 .collect();
