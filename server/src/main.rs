@@ -15,6 +15,7 @@ use nephele::{
     master::{self, MasterConfig},
     replay,
     rtc::RtcConfig,
+    session::RenderScale,
     web,
 };
 use nephele_signaling::Mode;
@@ -126,6 +127,13 @@ struct ReplayArgs {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// RGB→I420 and H.264 encode times on a moving test pattern.
+    Encode {
+        #[arg(long, default_value = "640x480,1280x720")]
+        sizes: String,
+        #[arg(long, default_value_t = 200)]
+        frames: u32,
+    },
     /// Per-stage and end-to-end streaming latency through an in-process server and the
     /// replay client, per frame size.
     Stream {
@@ -139,6 +147,12 @@ enum BenchCommand {
         backend: BackendChoice,
         #[arg(long, default_value_t = 50)]
         fps: u32,
+        /// Render scales to compare (each a fresh server): numbers in 0.05..=1 or auto.
+        #[arg(long, value_delimiter = ',', default_value = "1,0.5,auto")]
+        render_scales: Vec<String>,
+        /// Render-time target of the auto scale, ms.
+        #[arg(long, default_value_t = 30.0)]
+        frame_budget_ms: f64,
     },
     /// Ray-march / network / total ms, rays/s and hit fraction per backend and size.
     Render {
@@ -181,6 +195,13 @@ struct FarmArgs {
     /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT).
     #[arg(long)]
     public_ip: Vec<String>,
+    /// Render at this fraction of the stream size and upscale (1 = exact), or `auto`:
+    /// dynamic resolution that keeps render time near --frame-budget-ms.
+    #[arg(long, default_value = "auto")]
+    render_scale: String,
+    /// Render-time target of `--render-scale auto`, ms.
+    #[arg(long, default_value_t = 30.0)]
+    frame_budget_ms: f64,
 }
 
 impl FarmArgs {
@@ -195,6 +216,7 @@ impl FarmArgs {
             capacity: self.capacity,
             token: self.token.clone(),
             rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
+            render_scale: RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?,
         };
         Ok((farm, cfg))
     }
@@ -298,7 +320,22 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
-        Some(Command::Bench { what: BenchCommand::Stream { asset, sizes, trace, backend, fps } }) => bench_stream(&asset, &sizes, &trace, backend, fps),
+        Some(Command::Bench { what: BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms } }) => {
+            bench_stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms)
+        }
+        Some(Command::Bench { what: BenchCommand::Encode { sizes, frames } }) => {
+            println!("| size | frames | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes |");
+            println!("|---|---:|---:|---:|---:|---:|---:|");
+            for size in sizes.split(',') {
+                let (w, h) = parse_size(size)?;
+                let r = nephele::encode::bench_encode(w, h, frames)?;
+                println!(
+                    "| {w}x{h} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} |",
+                    r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes
+                );
+            }
+            Ok(())
+        }
         Some(Command::Bench { what: BenchCommand::Render { asset, sizes, backends, runs, distance } }) => {
             let a = load_asset(&asset)?;
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
@@ -363,52 +400,62 @@ fn replay(args: ReplayArgs) -> Result<()> {
     Ok(())
 }
 
-fn bench_stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u32) -> Result<()> {
+fn bench_stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u32, scales: &[String], budget_ms: f64) -> Result<()> {
     let trace = load_trace(trace)?;
     let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
+    let scales: Vec<(String, RenderScale)> =
+        scales.iter().map(|s| RenderScale::parse(s, budget_ms).map(|r| (s.clone(), r)).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
     let backend = make_backend(backend)?;
     let settings = RenderSettings::default();
     let farm = Arc::new(Farm::load(&[format!("bench={asset}")], backend.as_ref(), settings)?);
-    let cfg = MasterConfig { name: "bench".into(), capacity: 4, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] } };
     let rt = tokio::runtime::Runtime::new()?;
-    let reports = rt.block_on(async {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let addr = web::spawn_local(listener, farm, cfg).await?;
-        let mut reports = Vec::new();
+    let mut reports = Vec::new();
+    for (label, scale) in &scales {
         for &(width, height) in &sizes {
-            eprintln!("streaming {} at {width}x{height} ...", trace.name);
-            let opts = replay::ReplayOptions {
-                client: ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: false },
-                anchor: None,
-                quality_every: 0,
-                save_dir: None,
-                drain: std::time::Duration::from_secs(2),
+            eprintln!("streaming {} at {width}x{height}, render scale {label} ...", trace.name);
+            let cfg = MasterConfig {
+                name: "bench".into(),
+                capacity: 4,
+                token: None,
+                rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
+                render_scale: *scale,
             };
-            reports.push(replay::replay(&trace, &opts, None).await?);
-        }
-        anyhow::Ok(reports)
-    })?;
-    println!("asset {asset}, backend {}, trace {} ({} poses at {} ms), target {fps} fps\n", backend.name(), trace.name, trace.poses.len(), trace.period_ms);
-    println!("| size | stage | p50 ms | p99 ms |");
-    println!("|---|---|---:|---:|");
-    for r in &reports {
-        let size = format!("{}x{}", r.width, r.height);
-        for (stage, p) in [
-            ("pose receipt → render start (queue)", r.queue_ms),
-            ("render", r.render_ms),
-            ("RGB→I420", r.convert_ms),
-            ("H.264 encode", r.encode_ms),
-            ("RTP send", r.send_ms),
-            ("pose sent → frame info (client)", r.info_latency_ms),
-            ("pose sent → frame decoded (client)", r.latency_ms),
-        ] {
-            println!("| {size} | {stage} | {:.1} | {:.1} |", p.p50, p.p99);
+            let farm = Arc::clone(&farm);
+            let report = rt.block_on(async {
+                let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+                let addr = web::spawn_local(listener, Arc::clone(&farm), cfg).await?;
+                let opts = replay::ReplayOptions {
+                    client: ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: true },
+                    anchor: None,
+                    quality_every: 10,
+                    save_dir: None,
+                    drain: std::time::Duration::from_secs(2),
+                };
+                let scene = &farm.scenes["bench"];
+                replay::replay(&trace, &opts, Some((scene.prepared.as_ref(), farm.settings))).await
+            })?;
+            reports.push((label.clone(), report));
         }
     }
-    println!("\n| size | frames | fps | kbit/s | IDR | bad frames |");
-    println!("|---|---:|---:|---:|---:|---:|");
-    for r in &reports {
-        println!("| {}x{} | {} | {:.1} | {:.0} | {} | {} |", r.width, r.height, r.frames_decoded, r.fps, r.bitrate_kbps, r.idr_frames, r.frames_unknown_pose + r.frames_without_pose);
+    println!("asset {asset}, backend {}, trace {} ({} poses every {} ms), target {fps} fps, auto budget {budget_ms} ms\n", backend.name(), trace.name, trace.poses.len(), trace.period_ms);
+    println!("Per stage, p50 / p99 ms (master stages from frame info; end to end on the client clock):\n");
+    println!("| size | scale | queue | render | RGB→I420 | encode | RTP send | pose→frame info | pose→decoded |");
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|");
+    let pp = |p: replay::Percentiles| format!("{:.1} / {:.1}", p.p50, p.p99);
+    for (label, r) in &reports {
+        println!(
+            "| {}x{} | {label} | {} | {} | {} | {} | {} | {} | {} |",
+            r.width, r.height, pp(r.queue_ms), pp(r.render_ms), pp(r.convert_ms), pp(r.encode_ms), pp(r.send_ms), pp(r.info_latency_ms), pp(r.latency_ms)
+        );
+    }
+    println!("\n| size | scale | frames | fps | kbit/s | IDR | PSNR mean / min dB | bad frames |");
+    println!("|---|---|---:|---:|---:|---:|---:|---:|");
+    for (label, r) in &reports {
+        println!(
+            "| {}x{} | {label} | {} | {:.1} | {:.0} | {} | {:.2} / {:.2} | {} |",
+            r.width, r.height, r.frames_decoded, r.fps, r.bitrate_kbps, r.idr_frames,
+            r.mean_psnr().unwrap_or(f64::NAN), r.min_psnr().unwrap_or(f64::NAN), r.frames_unknown_pose + r.frames_without_pose
+        );
     }
     Ok(())
 }

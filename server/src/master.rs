@@ -25,7 +25,7 @@ use crate::{
     encode::{EncoderConfig, FrameEncoder},
     farm::{Farm, SceneEntry},
     rtc::{MasterPeer, PeerEvent, RtcConfig, WebrtcPeer, build_api},
-    session::{FrameJob, FrameTimes, Session},
+    session::{FrameJob, FrameTimes, RenderScale, Session},
     wire::{FrameInfo, ToViewer},
 };
 
@@ -43,6 +43,8 @@ pub struct MasterConfig {
     pub capacity: u32,
     pub token: Option<String>,
     pub rtc: RtcConfig,
+    /// Fixed or dynamic render resolution (the speed/accuracy knob).
+    pub render_scale: RenderScale,
 }
 
 /// Messages from the signaling loop to one session task.
@@ -103,7 +105,7 @@ async fn connect_once(url: &str, cfg: &MasterConfig, farm: &Arc<Farm>, api: &Arc
                             Ok(entry) => {
                                 let (cmd_tx, cmd_rx) = mpsc::unbounded_channel();
                                 sessions.insert(session.clone(), cmd_tx);
-                                let ctx = SessionCtx { id: session, entry, farm: Arc::clone(farm), mode, width, height, fps, to_signal: out_tx.clone() };
+                                let ctx = SessionCtx { id: session, entry, farm: Arc::clone(farm), mode, width, height, fps, render_scale: cfg.render_scale, to_signal: out_tx.clone() };
                                 let (api, gone) = (Arc::clone(api), gone_tx.clone());
                                 tokio::spawn(async move {
                                     let id = ctx.id.clone();
@@ -180,6 +182,7 @@ struct SessionCtx {
     width: u32,
     height: u32,
     fps: u32,
+    render_scale: RenderScale,
     to_signal: ToSignalTx,
 }
 
@@ -205,7 +208,7 @@ async fn session_loop(
     commands: &mut mpsc::UnboundedReceiver<Command>,
     events: &mut mpsc::Receiver<PeerEvent>,
 ) -> Result<String> {
-    let mut session = Session::new(ctx.width, ctx.height, ctx.fps);
+    let mut session = Session::with_scale(ctx.width, ctx.height, ctx.fps, ctx.render_scale);
     let mut encoder = Some(FrameEncoder::new(EncoderConfig::new(ctx.width, ctx.height, ctx.fps)).context("creating the encoder")?);
     let mut last_rgba: Vec<u8> = Vec::new();
     let mut in_flight: Option<tokio::task::JoinHandle<FrameResult>> = None;
@@ -341,11 +344,18 @@ fn render_and_encode(
     let rendered: Result<Vec<u8>> = match reuse {
         Some(rgba) if rgba.len() == (width * height * 4) as usize => Ok(rgba),
         _ => {
-            let request = ViewRequest { view: job.pose.view, instance: job.pose.instance, background };
+            let mut view = job.pose.view;
+            if job.render_scale < 1.0 {
+                view.intrinsics = view.intrinsics.scaled(job.render_scale);
+            }
+            let request = ViewRequest { view, instance: job.pose.instance, background };
             entry
                 .prepared
                 .render(&[request], &settings)
-                .map(|mut out| out.frames.swap_remove(0).rgba)
+                .map(|mut out| {
+                    let f = out.frames.swap_remove(0);
+                    if (f.width, f.height) == (width, height) { f.rgba } else { upscale_bilinear(&f.rgba, f.width, f.height, width, height) }
+                })
                 .map_err(|e| anyhow::anyhow!("render: {e}"))
         }
     };
@@ -362,4 +372,51 @@ fn render_and_encode(
         })
         .map_err(|e| anyhow::anyhow!("encode: {e}"));
     FrameResult { encoder, rgba, outcome }
+}
+
+/// Bilinear resize of RGBA8 from `sw`×`sh` to `dw`×`dh`, pixel centres aligned.
+pub fn upscale_bilinear(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
+    let (sw, sh, dw, dh) = (sw as usize, sh as usize, dw as usize, dh as usize);
+    // Source coordinate and weight of each destination column/row.
+    let taps = |d: usize, s: usize| -> Vec<(usize, usize, f32)> {
+        (0..d)
+            .map(|i| {
+                let x = ((i as f32 + 0.5) * s as f32 / d as f32 - 0.5).clamp(0.0, (s - 1) as f32);
+                let x0 = x as usize;
+                (x0, (x0 + 1).min(s - 1), x - x0 as f32)
+            })
+            .collect()
+    };
+    let (cols, rows) = (taps(dw, sw), taps(dh, sh));
+    let mut out = vec![0u8; dw * dh * 4];
+    for (y, &(y0, y1, fy)) in rows.iter().enumerate() {
+        let (r0, r1) = (&src[y0 * sw * 4..(y0 + 1) * sw * 4], &src[y1 * sw * 4..(y1 + 1) * sw * 4]);
+        let row = &mut out[y * dw * 4..(y + 1) * dw * 4];
+        for (px, &(x0, x1, fx)) in row.chunks_exact_mut(4).zip(&cols) {
+            for c in 0..4 {
+                let top = f32::from(r0[x0 * 4 + c]) * (1.0 - fx) + f32::from(r0[x1 * 4 + c]) * fx;
+                let bottom = f32::from(r1[x0 * 4 + c]) * (1.0 - fx) + f32::from(r1[x1 * 4 + c]) * fx;
+                px[c] = (top * (1.0 - fy) + bottom * fy).round() as u8;
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::upscale_bilinear;
+
+    #[test]
+    fn upscaling_keeps_flat_colour_and_interpolates_between_pixels() {
+        let flat = [10u8, 200, 30, 255].repeat(3 * 2);
+        assert_eq!(upscale_bilinear(&flat, 3, 2, 7, 5), [10u8, 200, 30, 255].repeat(7 * 5));
+        // 2×1 black|white → 4×1: centres at 0.25 and 0.75 of the way.
+        let src = [0, 0, 0, 255, 255, 255, 255, 255];
+        let out = upscale_bilinear(&src, 2, 1, 4, 1);
+        let reds: Vec<u8> = out.chunks(4).map(|p| p[0]).collect();
+        assert_eq!(reds, vec![0, 64, 191, 255]);
+        // Same size is the identity.
+        assert_eq!(upscale_bilinear(&src, 2, 1, 2, 1), src.to_vec());
+    }
 }

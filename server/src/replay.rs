@@ -245,7 +245,14 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
                 }
             }
             f = client.frames.recv() => match f {
-                Some(f) => frames.push(f),
+                Some(mut f) => {
+                    // Keep pixels only of frames that will be compared or saved.
+                    let sampled = opts.quality_every > 0 && frames.len() % opts.quality_every == 0;
+                    if !sampled && opts.save_dir.is_none() {
+                        f.rgba = Vec::new();
+                    }
+                    frames.push(f);
+                }
                 None => bail!("the video stream ended early"),
             },
             m = client.messages.recv() => match m {

@@ -20,6 +20,66 @@ use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
 /// Shortest gap between two IDRs forced by picture-loss reports.
 pub const IDR_MIN_GAP: Duration = Duration::from_millis(250);
 
+/// How large to render before upscaling to the stream size: the speed/accuracy knob.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RenderScale {
+    /// Always this fraction of the stream's width and height (1 = exact).
+    Fixed(f32),
+    /// Dynamic resolution: adjust the scale after every frame so that rendering takes about
+    /// `budget_ms`, never below `min`.
+    Auto { budget_ms: f64, min: f32 },
+}
+
+impl RenderScale {
+    /// Parses `auto` or a number in 0.05..=1.
+    pub fn parse(s: &str, budget_ms: f64) -> Result<Self, String> {
+        if s == "auto" {
+            return Ok(Self::Auto { budget_ms, min: 0.25 });
+        }
+        match s.parse::<f32>() {
+            Ok(v) if (0.05..=1.0).contains(&v) => Ok(Self::Fixed(v)),
+            _ => Err(format!("render scale {s:?} should be auto or a number in 0.05..=1")),
+        }
+    }
+}
+
+/// The dynamic-resolution controller. Render time grows with the pixel count, i.e. with
+/// scale², so the correction is √(budget / measured), limited per frame (down fast, up
+/// slowly) and snapped to 1/32 so the scale settles instead of jittering.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScaleController {
+    mode: RenderScale,
+    current: f32,
+}
+
+impl ScaleController {
+    pub fn new(mode: RenderScale) -> Self {
+        let current = match mode {
+            RenderScale::Fixed(s) => s,
+            RenderScale::Auto { min, .. } => 0.5f32.max(min),
+        };
+        Self { mode, current }
+    }
+
+    pub fn scale(&self) -> f32 {
+        self.current
+    }
+
+    /// One frame at the current scale took `render_ms`.
+    pub fn observe(&mut self, render_ms: f64) {
+        let RenderScale::Auto { budget_ms, min } = self.mode else { return };
+        if !(render_ms.is_finite() && render_ms > 0.0) {
+            return;
+        }
+        let ratio = (budget_ms / render_ms).sqrt().clamp(0.7, 1.1) as f32;
+        let next = ((self.current * ratio * 32.0).round() / 32.0).clamp(min, 1.0);
+        // Dead band: within ±10% of the budget, keep the scale.
+        if (render_ms / budget_ms - 1.0).abs() > 0.1 {
+            self.current = next;
+        }
+    }
+}
+
 /// A validated pose waiting for its frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PendingPose {
@@ -37,8 +97,10 @@ pub struct FrameJob {
     pub pose: PendingPose,
     /// Encode as an IDR (first frame, or a picture-loss report).
     pub idr: bool,
-    /// Same camera and placement as the previous frame: its pixels can be reused.
+    /// Same camera, placement and scale as the previous frame: its pixels can be reused.
     pub same_as_previous: bool,
+    /// Render at this fraction of the stream size, then upscale.
+    pub render_scale: f32,
     pub started_at: Instant,
 }
 
@@ -81,10 +143,16 @@ pub struct Session {
     last_idr_at: Option<Instant>,
     frame_number: u64,
     counters: SessionCounters,
+    scale: ScaleController,
+    last_scale: f32,
 }
 
 impl Session {
     pub fn new(width: u32, height: u32, fps: u32) -> Self {
+        Self::with_scale(width, height, fps, RenderScale::Fixed(1.0))
+    }
+
+    pub fn with_scale(width: u32, height: u32, fps: u32, scale: RenderScale) -> Self {
         let fps = fps.clamp(1, 120);
         Self {
             size: (width, height),
@@ -98,6 +166,8 @@ impl Session {
             last_idr_at: None,
             frame_number: 0,
             counters: SessionCounters::default(),
+            scale: ScaleController::new(scale),
+            last_scale: f32::NAN,
         }
     }
 
@@ -156,8 +226,10 @@ impl Session {
             None => return None,
         };
         self.frame_number += 1;
-        let same_as_previous = self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
-        let job = FrameJob { frame: self.frame_number, pose, idr: self.idr_wanted, same_as_previous, started_at: now };
+        let render_scale = self.scale.scale();
+        let same_as_previous =
+            self.last_scale == render_scale && self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
+        let job = FrameJob { frame: self.frame_number, pose, idr: self.idr_wanted, same_as_previous, render_scale, started_at: now };
         if self.idr_wanted {
             self.last_idr_at = Some(now);
         }
@@ -172,6 +244,10 @@ impl Session {
         let job = self.in_flight.take()?;
         self.counters.frames += 1;
         self.last_rendered = Some(job.pose);
+        self.last_scale = job.render_scale;
+        if !job.same_as_previous {
+            self.scale.observe(times.render_ms);
+        }
         Some(FrameInfo {
             frame: job.frame,
             pose_seq: job.pose.seq,
@@ -185,6 +261,7 @@ impl Session {
             send_ms: times.send_ms,
             bytes: times.bytes,
             idr: times.idr,
+            render_scale: job.render_scale,
         })
     }
 
@@ -328,6 +405,36 @@ mod tests {
         assert!(job.idr && job.same_as_previous && job.pose.seq == 1);
         s.frame_done(FrameTimes::default());
         assert_eq!(s.poll_frame(ms(t0, 400)), None, "no new pose, no IDR owed: nothing to do");
+    }
+
+    #[test]
+    fn dynamic_resolution_settles_near_the_budget() {
+        // A renderer whose time is proportional to the pixel count: 200 ms at full size.
+        let mut c = ScaleController::new(RenderScale::Auto { budget_ms: 40.0, min: 0.25 });
+        let model = |s: f32| 200.0 * f64::from(s * s);
+        for _ in 0..40 {
+            c.observe(model(c.scale()));
+        }
+        let ms = model(c.scale());
+        assert!((34.0..=46.0).contains(&ms), "settled at scale {} = {ms:.1} ms", c.scale());
+        let settled = c.scale();
+        c.observe(model(settled));
+        assert_eq!(c.scale(), settled, "no jitter once settled");
+        // A fast renderer climbs to full size; a hopeless one stops at the minimum.
+        let mut fast = ScaleController::new(RenderScale::Auto { budget_ms: 40.0, min: 0.25 });
+        (0..40).for_each(|_| fast.observe(10.0 * f64::from(fast.scale().powi(2))));
+        assert_eq!(fast.scale(), 1.0);
+        let mut slow = ScaleController::new(RenderScale::Auto { budget_ms: 40.0, min: 0.25 });
+        (0..40).for_each(|_| slow.observe(1e5));
+        assert_eq!(slow.scale(), 0.25);
+        // Fixed scales never move; garbage timings are ignored.
+        let mut fixed = ScaleController::new(RenderScale::Fixed(0.75));
+        fixed.observe(1e6);
+        assert_eq!(fixed.scale(), 0.75);
+        c.observe(f64::NAN);
+        assert_eq!(c.scale(), settled);
+        assert!(RenderScale::parse("0", 40.0).is_err() && RenderScale::parse("1.5", 40.0).is_err());
+        assert_eq!(RenderScale::parse("0.5", 40.0), Ok(RenderScale::Fixed(0.5)));
     }
 
     #[test]

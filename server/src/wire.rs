@@ -216,6 +216,8 @@ pub struct FrameInfo {
     /// Bytes of the access unit.
     pub bytes: usize,
     pub idr: bool,
+    /// Fraction of the stream size that was rendered before upscaling (1 = exact).
+    pub render_scale: f32,
 }
 
 impl ToViewer {

@@ -6,7 +6,7 @@
 
 use std::{path::PathBuf, process::Command, sync::Arc};
 
-use nephele::{farm::Farm, master::MasterConfig, rtc::RtcConfig, web};
+use nephele::{farm::Farm, master::MasterConfig, rtc::RtcConfig, session::RenderScale, web};
 use nephele_renderer::{CpuBackend, RenderSettings};
 
 fn repo() -> PathBuf {
@@ -24,7 +24,7 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     );
     let asset = repo().join("examples/assets/trio-small.nolf");
     let farm = Arc::new(Farm::load(&[format!("trio={}", asset.display())], &CpuBackend, RenderSettings::default()).unwrap());
-    let cfg = MasterConfig { name: "browser-test".into(), capacity: 4, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] } };
+    let cfg = MasterConfig { name: "browser-test".into(), capacity: 4, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, render_scale: RenderScale::Fixed(1.0) };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = web::spawn_local(listener, farm, cfg).await.unwrap();
 

@@ -18,22 +18,23 @@ fn nal_types(au: &[u8]) -> Vec<u8> {
     split_nals(au).map(|n| n[0] & 0x1f).collect()
 }
 
+/// `head` NALs, then one or more slices of type `slice`, each within one RTP payload.
+fn assert_layout(frame: &EncodedFrame, head: &[u8], slice: u8, what: &str) {
+    let types = nal_types(&frame.annex_b);
+    assert!(types.len() > head.len() && types.starts_with(head), "{what} access unit layout: {types:?}");
+    assert!(types[head.len()..].iter().all(|&t| t == slice), "{what} access unit layout: {types:?}");
+    let largest = split_nals(&frame.annex_b).map(<[u8]>::len).max().unwrap();
+    assert!(largest <= nephele::encode::MAX_SLICE_BYTES as usize, "a {largest}-byte NAL exceeds the slice limit");
+}
+
 fn assert_idr(frame: &EncodedFrame) {
     assert!(frame.is_idr);
-    assert_eq!(
-        nal_types(&frame.annex_b),
-        [SPS, PPS, SEI, IDR],
-        "IDR access unit layout"
-    );
+    assert_layout(frame, &[SPS, PPS, SEI], IDR, "IDR");
 }
 
 fn assert_p(frame: &EncodedFrame) {
     assert!(!frame.is_idr);
-    assert_eq!(
-        nal_types(&frame.annex_b),
-        [SEI, SLICE],
-        "P access unit layout"
-    );
+    assert_layout(frame, &[SEI], SLICE, "P");
 }
 
 /// Decode one access unit and convert it to RGBA (BT.601 limited, as the encoder converts).

@@ -26,6 +26,7 @@ use nephele::{
     master::MasterConfig,
     replay::{ReplayOptions, Trace, replay},
     rtc::RtcConfig,
+    session::RenderScale,
     web,
     wire::{PoseMessage, ToViewer},
 };
@@ -41,7 +42,7 @@ fn fixture() -> String {
 
 async fn start_server(capacity: u32) -> (SocketAddr, Arc<Farm>) {
     let farm = Arc::new(Farm::load(&[fixture()], &CpuBackend, RenderSettings::default()).expect("fixture asset"));
-    let cfg = MasterConfig { name: "test".into(), capacity, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] } };
+    let cfg = MasterConfig { name: "test".into(), capacity, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, render_scale: RenderScale::Fixed(1.0) };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     (web::spawn_local(listener, Arc::clone(&farm), cfg).await.unwrap(), farm)
 }

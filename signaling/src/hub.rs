@@ -8,8 +8,9 @@
 //!
 //! Pairing: a join goes to the master with room (`sessions < capacity`) and the least
 //! load (`sessions / capacity`, ties broken by id). Each master's session count is
-//! kept by the hub (join +1; leave, end, reject, disconnect -1) and overwritten by the
-//! master's own count whenever a heartbeat arrives.
+//! kept by the hub (join +1; leave, end, reject, disconnect -1) and raised to the
+//! master's own count whenever a heartbeat arrives (never below the sessions the hub has
+//! paired there: a heartbeat can be older than the latest join).
 
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -357,7 +358,10 @@ impl Hub {
             }),
             (Peer::Master(m), ToSignal::Heartbeat { sessions }) => {
                 m.last_seen = now;
-                m.sessions = sessions;
+                // A heartbeat may have left the master before a join we paired reached it:
+                // never count fewer sessions than this hub has paired there and not ended.
+                let paired = self.sessions.values().filter(|s| s.master == conn).count() as u32;
+                m.sessions = sessions.max(paired);
                 Ok(Vec::new())
             }
             (Peer::Master(m), ToSignal::Answer { session, sdp }) => {
@@ -1044,9 +1048,13 @@ mod tests {
         // Ended clients may join again.
         add_client(&mut hub, 13, t0);
         assert_eq!(master_sessions(&hub), vec![("m".into(), 2)]);
-        // The master's own count wins.
+        // The master's own count wins when it is higher...
         assert!(send(&mut hub, 1, json!({"type":"heartbeat","sessions":7}), t0).is_empty());
         assert_eq!(master_sessions(&hub), vec![("m".into(), 7)]);
+        // ...but a stale heartbeat (sent before the latest joins reached the master)
+        // cannot free capacity that paired sessions still hold.
+        assert!(send(&mut hub, 1, json!({"type":"heartbeat","sessions":0}), t0).is_empty());
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 2)]);
     }
 
     #[test]
