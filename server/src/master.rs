@@ -208,6 +208,7 @@ async fn session_loop(
     commands: &mut mpsc::UnboundedReceiver<Command>,
     events: &mut mpsc::Receiver<PeerEvent>,
 ) -> Result<String> {
+    let session_start = Instant::now();
     let mut session = Session::with_scale(ctx.width, ctx.height, ctx.fps, ctx.render_scale);
     let mut encoder = Some(FrameEncoder::new(EncoderConfig::new(ctx.width, ctx.height, ctx.fps)).context("creating the encoder")?);
     let mut last_rgba: Vec<u8> = Vec::new();
@@ -234,7 +235,7 @@ async fn session_loop(
             let reuse = job.same_as_previous.then(|| std::mem::take(&mut last_rgba));
             let (w, h) = (ctx.width, ctx.height);
             in_flight = Some(tokio::task::spawn_blocking(move || {
-                render_and_encode(entry, settings, job, background, enc, reuse, w, h)
+                render_and_encode(entry, settings, job, background, enc, reuse, w, h, session_start)
             }));
             current_job = Some(job);
         }
@@ -339,6 +340,7 @@ fn render_and_encode(
     reuse: Option<Vec<u8>>,
     width: u32,
     height: u32,
+    session_start: Instant,
 ) -> FrameResult {
     let started = Instant::now();
     let rendered: Result<Vec<u8>> = match reuse {
@@ -364,8 +366,9 @@ fn render_and_encode(
         Ok(rgba) => rgba,
         Err(e) => return FrameResult { encoder, rgba: Vec::new(), outcome: Err(e) },
     };
+    let t_ms = job.started_at.duration_since(session_start).as_millis() as u64;
     let outcome = encoder
-        .encode(&rgba, width, height, u64::from(job.pose.seq))
+        .encode_at(&rgba, width, height, u64::from(job.pose.seq), t_ms)
         .map(|f| {
             let times = FrameTimes { render_ms, convert_ms: f.convert_ms, encode_ms: f.encode_ms, send_ms: 0.0, bytes: f.annex_b.len(), idr: f.is_idr };
             (Bytes::from(f.annex_b), times)

@@ -85,3 +85,69 @@ fn signal_serves_status() {
     child.kill().ok();
     assert!(body.starts_with("HTTP/1.1 200") && body.contains("\"masters\":[]"), "{body}");
 }
+
+/// Kills a child process when dropped, so a failing assertion leaves no server behind.
+struct Reap(std::process::Child);
+
+impl Drop for Reap {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+#[test]
+fn split_deployment_signal_master_and_replay_of_a_shipped_trace() {
+    use std::io::{BufRead, BufReader};
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let asset = root.join("examples/assets/trio-small.nolf");
+    let trace = root.join("examples/traces/shake.json");
+    let mut signal = Command::new(env!("CARGO_BIN_EXE_nephele"))
+        .args(["signal", "--listen", "127.0.0.1:0"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(signal.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let _signal = Reap(signal);
+    let url = format!("ws://{}", line.split("ws://").nth(1).and_then(|s| s.split_whitespace().next()).expect("prints its address"));
+    let scene = format!("trio={}", asset.display());
+    let _master = Reap(
+        Command::new(env!("CARGO_BIN_EXE_nephele"))
+            .args(["master", "--signal", &url, "--scene", &scene, "--backend", "cpu", "--loopback-only", "--render-scale", "1"])
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    // The master registers within a moment; until then signaling answers no_capacity.
+    let mut last = String::new();
+    for _ in 0..20 {
+        let o = nephele(&[
+            "replay", "--trace", trace.to_str().unwrap(), "--signal", &url, "--size", "320x240",
+            "--reference", asset.to_str().unwrap(), "--quality-every", "3", "--json",
+        ]);
+        last = format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        if o.status.success() {
+            let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON report");
+            assert!(report["frames_decoded"].as_u64().unwrap() >= 5, "{report}");
+            assert_eq!(report["frames_unknown_pose"], 0, "{report}");
+            assert_eq!(report["frames_without_pose"], 0, "{report}");
+            let psnr: Vec<f64> = report["quality"].as_array().unwrap().iter().map(|q| q["psnr_db"].as_f64().unwrap()).collect();
+            let min = psnr.iter().copied().fold(f64::INFINITY, f64::min);
+            assert!(!psnr.is_empty() && min >= 30.0, "min PSNR {min:.2} dB over {} frames: {psnr:?}", psnr.len());
+            return;
+        }
+        assert!(last.contains("no_capacity") || last.contains("NoCapacity"), "replay failed: {last}");
+        std::thread::sleep(std::time::Duration::from_millis(250));
+    }
+    panic!("the master never took a session: {last}");
+}
+
+#[test]
+fn shipped_traces_are_the_built_in_ones() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/traces");
+    for name in nephele::replay::BUILTIN_TRACES {
+        let shipped = nephele::replay::Trace::load(&root.join(format!("{name}.json"))).unwrap();
+        assert_eq!(shipped, nephele::replay::Trace::builtin(name).unwrap(), "{name}: regenerate with `nephele traces`");
+    }
+}

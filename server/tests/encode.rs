@@ -228,7 +228,7 @@ fn wrong_sizes_are_errors_not_panics() {
 #[test]
 fn config_bitrate_scales_and_clamps() {
     assert_eq!(EncoderConfig::new(160, 120, 30).bitrate_bps, 300_000);
-    assert_eq!(EncoderConfig::new(1280, 720, 50).bitrate_bps, 4_608_000);
+    assert_eq!(EncoderConfig::new(1280, 720, 50).bitrate_bps, 6_912_000);
     assert_eq!(EncoderConfig::new(3840, 2160, 60).bitrate_bps, 20_000_000);
     assert_eq!(EncoderConfig::new(321, 241, 30).padded_size(), (322, 242));
 }
