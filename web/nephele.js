@@ -654,6 +654,10 @@ export function hudLines(conn) {
     ['latency', h.latencyMs == null ? '–' : `${h.latencyMs.toFixed(0)} ms`],
     ['bitrate', `${h.kbps.toFixed(0)} kbit/s`],
     ['resolution', h.width ? `${h.width}×${h.height}` : '–'],
+    // The server renders at this fraction of the stream size when moving (dynamic
+    // resolution) and refines to full size when the camera rests.
+    ['render', f ? `${Math.round((f.render_scale ?? 1) * 100)}% · ${f.render_ms.toFixed(0)} ms` : '–'],
+    ['encode', f ? `${f.encode_ms.toFixed(1)} ms` : '–'],
     ['frame', f ? String(f.frame) : '–'],
   ];
 }

@@ -17,6 +17,9 @@ use nephele_renderer::{Instance, View};
 
 use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
 
+/// With dynamic resolution, a camera still for this long gets one full-size frame.
+pub const REFINE_AFTER: Duration = Duration::from_millis(150);
+
 /// Shortest gap between two IDRs forced by picture-loss reports.
 pub const IDR_MIN_GAP: Duration = Duration::from_millis(250);
 
@@ -63,6 +66,10 @@ impl ScaleController {
 
     pub fn scale(&self) -> f32 {
         self.current
+    }
+
+    pub fn is_auto(&self) -> bool {
+        matches!(self.mode, RenderScale::Auto { .. })
     }
 
     /// One frame at the current scale took `render_ms`.
@@ -145,6 +152,8 @@ pub struct Session {
     counters: SessionCounters,
     scale: ScaleController,
     last_scale: f32,
+    /// When the camera (or anchor) last changed.
+    still_since: Option<Instant>,
 }
 
 impl Session {
@@ -168,6 +177,7 @@ impl Session {
             counters: SessionCounters::default(),
             scale: ScaleController::new(scale),
             last_scale: f32::NAN,
+            still_since: None,
         }
     }
 
@@ -198,6 +208,10 @@ impl Session {
         if self.pending.is_some() {
             self.counters.poses_superseded += 1;
         }
+        let previous = self.pending.or(self.last_rendered);
+        if previous.is_none_or(|p| (p.view, p.instance) != (view, instance)) {
+            self.still_since = Some(now);
+        }
         self.pending = Some(PendingPose { seq: msg.seq, t_client_ms: msg.t_client_ms, view, instance, received_at: now });
         Ok(true)
     }
@@ -226,11 +240,22 @@ impl Session {
             None => return None,
         };
         self.frame_number += 1;
-        let render_scale = self.scale.scale();
-        let same_as_previous =
-            self.last_scale == render_scale && self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
-        let job = FrameJob { frame: self.frame_number, pose, idr: self.idr_wanted, same_as_previous, render_scale, started_at: now };
-        if self.idr_wanted {
+        let same_pose = self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
+        // Moving: the controller's scale. Still: keep the last pixels, or, with dynamic
+        // resolution and a camera at rest for REFINE_AFTER, render once at full size.
+        let at_rest = self.scale.is_auto() && self.still_since.is_some_and(|t| now.duration_since(t) >= REFINE_AFTER);
+        let render_scale = match (same_pose, at_rest) {
+            (false, _) => self.scale.scale(),
+            (true, true) => 1.0,
+            (true, false) => self.last_scale,
+        };
+        let same_as_previous = same_pose && self.last_scale == render_scale;
+        // A refinement is sent as an IDR: the whole picture at the quality a still camera
+        // affords, instead of P-frames that keep the motion frames' coding artefacts.
+        let refine = same_pose && !same_as_previous;
+        let idr = self.idr_wanted || refine;
+        let job = FrameJob { frame: self.frame_number, pose, idr, same_as_previous, render_scale, started_at: now };
+        if idr {
             self.last_idr_at = Some(now);
         }
         self.idr_wanted = false;
@@ -243,11 +268,14 @@ impl Session {
     pub fn frame_done(&mut self, times: FrameTimes) -> Option<FrameInfo> {
         let job = self.in_flight.take()?;
         self.counters.frames += 1;
-        self.last_rendered = Some(job.pose);
-        self.last_scale = job.render_scale;
-        if !job.same_as_previous {
+        // Only frames of a moving camera teach the controller (refinements are full size
+        // on purpose).
+        let moved = self.last_rendered.is_none_or(|p| (p.view, p.instance) != (job.pose.view, job.pose.instance));
+        if moved && !job.same_as_previous {
             self.scale.observe(times.render_ms);
         }
+        self.last_rendered = Some(job.pose);
+        self.last_scale = job.render_scale;
         Some(FrameInfo {
             frame: job.frame,
             pose_seq: job.pose.seq,
@@ -435,6 +463,46 @@ mod tests {
         assert_eq!(c.scale(), settled);
         assert!(RenderScale::parse("0", 40.0).is_err() && RenderScale::parse("1.5", 40.0).is_err());
         assert_eq!(RenderScale::parse("0.5", 40.0), Ok(RenderScale::Fixed(0.5)));
+    }
+
+    #[test]
+    fn a_still_camera_gets_one_full_size_frame_then_reuses_it() {
+        let t0 = Instant::now();
+        let mut s = Session::with_scale(W, H, 50, RenderScale::Auto { budget_ms: 30.0, min: 0.25 });
+        let mut seq = 0;
+        let mut step = |s: &mut Session, t: u64, az: f64, render_ms: f64| {
+            seq += 1;
+            s.on_pose(&pose(seq, az), ms(t0, t)).unwrap();
+            let job = s.poll_frame(ms(t0, t)).expect("a frame");
+            s.frame_done(FrameTimes { render_ms, ..Default::default() });
+            job
+        };
+        // Moving: the controller's scale (starts at 0.5; 15 ms is under budget → grows).
+        let moving = step(&mut s, 0, 0.0, 15.0);
+        assert_eq!(moving.render_scale, 0.5);
+        let moving = step(&mut s, 20, 1.0, 15.0);
+        assert!(moving.render_scale > 0.5 && moving.render_scale < 1.0, "{}", moving.render_scale);
+        let scale = s.scale.scale();
+        // Stopped, but not for long: the last pixels are reused.
+        let held = step(&mut s, 40, 1.0, 0.0);
+        assert!(held.same_as_previous && held.render_scale == moving.render_scale);
+        // At rest for 150 ms: one full-size render, then reuse at full size.
+        let refined = step(&mut s, 180, 1.0, 400.0);
+        assert!(!refined.same_as_previous && refined.render_scale == 1.0 && refined.idr);
+        let reuse = step(&mut s, 200, 1.0, 0.0);
+        assert!(reuse.same_as_previous && reuse.render_scale == 1.0);
+        assert_eq!(s.scale.scale(), scale, "the slow refinement did not teach the controller");
+        // Moving again: back to the controller's scale.
+        let again = step(&mut s, 220, 2.0, 15.0);
+        assert_eq!(again.render_scale, scale);
+        // A fixed scale never refines.
+        let mut f = Session::with_scale(W, H, 50, RenderScale::Fixed(0.5));
+        f.on_pose(&pose(1, 0.0), t0).unwrap();
+        f.poll_frame(t0).unwrap();
+        f.frame_done(FrameTimes::default());
+        f.on_pose(&pose(2, 0.0), ms(t0, 500)).unwrap();
+        let job = f.poll_frame(ms(t0, 500)).unwrap();
+        assert!(job.same_as_previous && job.render_scale == 0.5);
     }
 
     #[test]
