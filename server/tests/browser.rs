@@ -43,3 +43,57 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     assert!(report["arFramesDecoded"].as_u64().unwrap() >= 5, "{report}");
     assert!(report["meanAbsDiff"].as_f64().unwrap() > 2.0, "{report}");
 }
+
+/// Kills a child process when dropped, so a failing assertion leaves no server behind.
+struct Reap(std::process::Child);
+
+impl Drop for Reap {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+/// Starts `nephele serve` on `addr` and waits for its "open http://…" line.
+fn serve(addr: &str) -> Reap {
+    use std::io::{BufRead, BufReader};
+    let scene = format!("trio={}", repo().join("examples/assets/trio-small.nolf").display());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_nephele"))
+        .args(["serve", "--listen", addr, "--scene", &scene, "--backend", "cpu", "--loopback-only"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("starting nephele serve");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.contains("open http://"), "serve printed {line:?}");
+    Reap(child)
+}
+
+#[test]
+fn the_viewer_reconnects_after_the_server_restarts() {
+    use std::io::{BufRead, BufReader};
+    assert!(repo().join("tests/browser/node_modules/playwright-core").exists(), "run `npm ci --prefix tests/browser` (tests/run does)");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let server = serve(&addr);
+    let mut node = Command::new("node")
+        .arg(repo().join("tests/browser/reconnect.mjs"))
+        .arg(format!("http://{addr}/"))
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("running node");
+    let mut out = BufReader::new(node.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "READY", "the viewer did not stream before the restart: {line}");
+    drop(server);
+    std::thread::sleep(std::time::Duration::from_secs(2));
+    let _server = serve(&addr);
+    let mut rest = String::new();
+    while out.read_line(&mut rest).unwrap() > 0 {}
+    let status = node.wait().unwrap();
+    let report: serde_json::Value = serde_json::from_str(rest.lines().last().unwrap_or_default()).unwrap_or_else(|_| panic!("no JSON report: {rest}"));
+    assert!(status.success() && report["ok"] == true, "reconnect check failed: {report}");
+    assert!(report["banner"].as_str().is_some_and(|b| !b.is_empty()), "the lost connection was not shown in words: {report}");
+}
