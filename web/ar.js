@@ -9,7 +9,7 @@
 
 import {
   OrbitCamera, attachOrbitControls, Connection, ensureCapturePermission,
-  fetchScenes, readPageOptions, hudLines,
+  fetchScenes, readPageOptions, renderStatus,
 } from './nephele.js';
 
 const $ = (id) => document.getElementById(id);
@@ -88,21 +88,7 @@ function note(text, ms = 0) {
   if (ms) noteTimer = setTimeout(() => { el.hidden = true; }, ms);
 }
 
-function render() {
-  $('state').textContent = conn.state;
-  $('state').dataset.state = conn.state;
-  const banner = $('banner');
-  banner.hidden = !conn.banner;
-  if (conn.banner) {
-    banner.textContent = conn.banner.text;
-    banner.dataset.kind = conn.banner.kind;
-  }
-  $('hud').replaceChildren(...hudLines(conn).flatMap(([k, v]) => {
-    const dt = document.createElement('dt'); dt.textContent = k;
-    const dd = document.createElement('dd'); dd.textContent = v;
-    return [dt, dd];
-  }));
-}
+function render() { renderStatus(conn); }
 
 // ──────────────────────────────── WebGL chroma key ──────────────────────────────
 

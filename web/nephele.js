@@ -661,3 +661,22 @@ export function hudLines(conn) {
     ['frame', f ? String(f.frame) : '–'],
   ];
 }
+
+/** Shows the connection state, the banner and the HUD in the page's `#state`, `#banner`
+ *  and `#hud` elements (both pages use the same ids). */
+export function renderStatus(conn) {
+  const $ = (id) => document.getElementById(id);
+  $('state').textContent = conn.state;
+  $('state').dataset.state = conn.state;
+  const banner = $('banner');
+  banner.hidden = !conn.banner;
+  if (conn.banner) {
+    banner.textContent = conn.banner.text;
+    banner.dataset.kind = conn.banner.kind;
+  }
+  $('hud').replaceChildren(...hudLines(conn).flatMap(([k, v]) => {
+    const dt = document.createElement('dt'); dt.textContent = k;
+    const dd = document.createElement('dd'); dd.textContent = v;
+    return [dt, dd];
+  }));
+}

@@ -6,7 +6,7 @@
 
 import {
   OrbitCamera, attachOrbitControls, Connection, ensureCapturePermission,
-  fetchScenes, readPageOptions, hudLines,
+  fetchScenes, readPageOptions, renderStatus,
 } from './nephele.js';
 
 const $ = (id) => document.getElementById(id);
@@ -45,22 +45,7 @@ function shownHeight() {
 }
 attachOrbitControls($('stage'), camera, { viewportHeight: shownHeight });
 
-function render() {
-  $('state').textContent = conn.state;
-  $('state').dataset.state = conn.state;
-  const banner = $('banner');
-  banner.hidden = !conn.banner;
-  if (conn.banner) {
-    banner.textContent = conn.banner.text;
-    banner.dataset.kind = conn.banner.kind;
-  }
-  const hud = $('hud');
-  hud.replaceChildren(...hudLines(conn).flatMap(([k, v]) => {
-    const dt = document.createElement('dt'); dt.textContent = k;
-    const dd = document.createElement('dd'); dd.textContent = v;
-    return [dt, dd];
-  }));
-}
+function render() { renderStatus(conn); }
 
 function connectFromPickers() {
   const [width, height] = sizeSelect.value.split('x').map(Number);

@@ -113,6 +113,19 @@ impl View {
         Self { world_from_camera, intrinsics }
     }
 
+    /// World-space ray through the image point (`x_px`, `y_px`), in continuous pixel units:
+    /// pixel (x, y) covers [x, x+1) × [y, y+1), so its centre is (x + ½, y + ½); row 0 is the
+    /// top. Returns (origin = eye, unit direction). Same formulas as [`RayFrame::ray`] without
+    /// the origin shift.
+    pub fn ray_in_world(&self, x_px: f64, y_px: f64) -> (DVec3, DVec3) {
+        let k = &self.intrinsics;
+        let x = (x_px - k.cx as f64) / k.fx as f64;
+        let y = -(y_px - k.cy as f64) / k.fy as f64;
+        let dir_in_camera = DVec3::new(x, y, -1.0).normalize();
+        let m = &self.world_from_camera;
+        (m.w_axis.truncate(), m.transform_vector3(dir_in_camera))
+    }
+
     /// Rejects non-finite, non-rigid, mirrored or far-away poses and absurd sizes.
     pub fn validate(&self) -> Result<(), PoseError> {
         let m = &self.world_from_camera;

@@ -1,10 +1,12 @@
 //! Nephele renderer: the i-NOLF model of NEPHELE (Luo et al., arXiv 2303.04086) — asset
 //! format, camera and ray maths, a plain CPU reference and a wgpu compute backend that agree
-//! on DESIGN §3, and procedural assets. No tokio, no network.
+//! on DESIGN §3, procedural assets, and training data: posed-image datasets (NeRF-synthetic,
+//! instant-ngp) and exactly ray-traced synthetic ones. No tokio, no network.
 
 pub mod asset;
 pub mod camera;
 pub mod cubes;
+pub mod dataset;
 pub mod gpu;
 pub mod mlp;
 pub mod model;
@@ -12,6 +14,7 @@ pub mod procedural;
 pub mod psh;
 pub mod render;
 pub mod sh;
+pub mod synth;
 
 pub use asset::{Asset, AssetError};
 pub use camera::{Instance, Intrinsics, PoseError, View};

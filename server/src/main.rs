@@ -82,6 +82,34 @@ enum Command {
         #[arg(long, default_value = "examples/traces")]
         out: PathBuf,
     },
+    /// Write an analytic (ray-traced) scene as a NeRF-synthetic dataset with exact alpha.
+    Synth {
+        /// diffuse, glossy, translucent or mixed.
+        #[arg(long, default_value = "mixed")]
+        scene: String,
+        #[arg(long, default_value = "200x200")]
+        size: String,
+        #[arg(long, default_value_t = 100)]
+        train: usize,
+        #[arg(long, default_value_t = 20)]
+        val: usize,
+        #[arg(long, default_value_t = 20)]
+        test: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Check a dataset folder (NeRF-synthetic or instant-ngp) and print its splits.
+    DatasetInfo {
+        dataset: PathBuf,
+        /// instant-ngp: move every n-th frame to the test split.
+        #[arg(long)]
+        holdout_every: Option<usize>,
+        /// Also decode every image of every split (finds broken files).
+        #[arg(long)]
+        load: bool,
+    },
     /// Benchmarks that print tables.
     Bench {
         #[command(subcommand)]
@@ -206,6 +234,7 @@ struct FarmArgs {
 
 impl FarmArgs {
     fn load(&self) -> Result<(Arc<Farm>, MasterConfig)> {
+        let render_scale = RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?;
         let backend = make_backend(self.backend)?;
         let settings = RenderSettings { step_scale: self.step_scale, ..Default::default() };
         settings.validate().map_err(anyhow::Error::msg)?;
@@ -216,7 +245,7 @@ impl FarmArgs {
             capacity: self.capacity,
             token: self.token.clone(),
             rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
-            render_scale: RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?,
+            render_scale,
         };
         Ok((farm, cfg))
     }
@@ -310,6 +339,30 @@ fn main() -> Result<()> {
             })
         }
         Some(Command::Replay(args)) => replay(args),
+        Some(Command::Synth { scene, size, train, val, test, seed, out }) => {
+            use nephele_renderer::synth::{SynthConfig, SynthScene, generate};
+            let scene: SynthScene = scene.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
+            let (width, height) = parse_size(&size)?;
+            let cfg = SynthConfig { scene, width, height, n_train: train, n_val: val, n_test: test, seed };
+            let t = std::time::Instant::now();
+            generate(&cfg, &out)?;
+            println!("wrote {} ({scene}, {width}x{height}, {train}/{val}/{test} views) in {:.1} s", out.display(), t.elapsed().as_secs_f64());
+            Ok(())
+        }
+        Some(Command::DatasetInfo { dataset, holdout_every, load }) => {
+            use nephele_renderer::dataset::{Dataset, LoadOptions, inspect};
+            let info = inspect(&dataset, holdout_every)?;
+            println!("{} ({:?}), aabb_scale {:?}", info.name, info.format, info.aabb_scale);
+            for s in &info.splits {
+                println!("  {:5} {:4} frames, first image {:?} ({})", s.split.to_string(), s.frames, s.first_image_size, s.transforms_file.display());
+                if load {
+                    let t = std::time::Instant::now();
+                    let d = Dataset::load(&dataset, &LoadOptions { holdout_every, ..LoadOptions::split(s.split) })?;
+                    println!("        decoded {} images in {:.2} s", d.images.len(), t.elapsed().as_secs_f64());
+                }
+            }
+            Ok(())
+        }
         Some(Command::Traces { out }) => {
             std::fs::create_dir_all(&out)?;
             for name in replay::BUILTIN_TRACES {

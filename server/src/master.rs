@@ -324,8 +324,8 @@ async fn send_json(peer: &impl MasterPeer, msg: &ToViewer) {
 
 fn log_frame(session: &str, info: &FrameInfo) {
     tracing::debug!(
-        session, frame = info.frame, pose = info.pose_seq, render_ms = info.render_ms, encode_ms = info.encode_ms,
-        bytes = info.bytes, idr = info.idr, "frame sent"
+        session, frame = info.frame, pose = info.pose_seq, render_ms = info.times.render_ms, encode_ms = info.times.encode_ms,
+        bytes = info.times.bytes, idr = info.times.idr, "frame sent"
     );
 }
 

@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use nephele_renderer::{Instance, View};
 
+pub use crate::wire::FrameTimes;
 use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
 
 /// With dynamic resolution, a camera still for this long gets one full-size frame.
@@ -37,6 +38,9 @@ impl RenderScale {
     /// Parses `auto` or a number in 0.05..=1.
     pub fn parse(s: &str, budget_ms: f64) -> Result<Self, String> {
         if s == "auto" {
+            if !(1.0..=10_000.0).contains(&budget_ms) {
+                return Err(format!("frame budget {budget_ms} ms should be in 1..=10000"));
+            }
             return Ok(Self::Auto { budget_ms, min: 0.25 });
         }
         match s.parse::<f32>() {
@@ -109,17 +113,6 @@ pub struct FrameJob {
     /// Render at this fraction of the stream size, then upscale.
     pub render_scale: f32,
     pub started_at: Instant,
-}
-
-/// Timings the runner measured for a finished frame.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct FrameTimes {
-    pub render_ms: f64,
-    pub convert_ms: f64,
-    pub encode_ms: f64,
-    pub send_ms: f64,
-    pub bytes: usize,
-    pub idr: bool,
 }
 
 /// Counters for the session's life, for logs and tests.
@@ -283,12 +276,7 @@ impl Session {
             width: self.size.0,
             height: self.size.1,
             queue_ms: job.started_at.duration_since(job.pose.received_at).as_secs_f64() * 1e3,
-            render_ms: times.render_ms,
-            convert_ms: times.convert_ms,
-            encode_ms: times.encode_ms,
-            send_ms: times.send_ms,
-            bytes: times.bytes,
-            idr: times.idr,
+            times,
             render_scale: job.render_scale,
         })
     }
@@ -462,6 +450,7 @@ mod tests {
         c.observe(f64::NAN);
         assert_eq!(c.scale(), settled);
         assert!(RenderScale::parse("0", 40.0).is_err() && RenderScale::parse("1.5", 40.0).is_err());
+        assert!(RenderScale::parse("auto", f64::NAN).is_err() && RenderScale::parse("auto", -5.0).is_err());
         assert_eq!(RenderScale::parse("0.5", 40.0), Ok(RenderScale::Fixed(0.5)));
     }
 

@@ -208,7 +208,18 @@ pub struct FrameInfo {
     pub height: u32,
     /// Time from pose receipt to the start of rendering (waiting for the frame slot).
     pub queue_ms: f64,
+    /// Stage times and size, flattened into this object on the wire.
+    #[serde(flatten)]
+    pub times: FrameTimes,
+    /// Fraction of the stream size that was rendered before upscaling (1 = exact).
+    pub render_scale: f32,
+}
+
+/// Where one frame's time went after it left the queue, and what it weighed.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct FrameTimes {
     pub render_ms: f64,
+    /// RGBA → I420.
     pub convert_ms: f64,
     pub encode_ms: f64,
     /// Handing the access unit to the RTP track (packetise, SRTP, socket).
@@ -216,8 +227,6 @@ pub struct FrameInfo {
     /// Bytes of the access unit.
     pub bytes: usize,
     pub idr: bool,
-    /// Fraction of the stream size that was rendered before upscaling (1 = exact).
-    pub render_scale: f32,
 }
 
 impl ToViewer {

@@ -58,6 +58,10 @@ fn bad_input_is_a_clear_error() {
         (vec!["render", "builtin:trio-small", "--size", "100000x10", "--backend", "cpu"], "outside"),
         (vec!["render", "builtin:trio-small", "--size", "ax3"], "invalid digit"),
         (vec!["render", "builtin:trio-small", "--background", "purple"], "colour"),
+        (vec!["synth", "--scene", "teapot", "--out", "/tmp/never"], "unknown synthetic scene"),
+        (vec!["dataset-info", "/nonexistent/lego"], "does not exist"),
+        (vec!["serve", "--render-scale", "2"], "render scale"),
+        (vec!["replay", "--trace", "/nonexistent.json"], "nonexistent.json"),
     ] {
         let o = nephele(&args);
         assert!(!o.status.success(), "{args:?} should fail");
@@ -141,6 +145,19 @@ fn split_deployment_signal_master_and_replay_of_a_shipped_trace() {
         std::thread::sleep(std::time::Duration::from_millis(250));
     }
     panic!("the master never took a session: {last}");
+}
+
+#[test]
+fn synth_writes_a_dataset_that_dataset_info_reads() {
+    let dir = tmp("synth");
+    let o = nephele(&["synth", "--scene", "glossy", "--size", "32x24", "--train", "3", "--val", "1", "--test", "2", "--out", dir.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = nephele(&["dataset-info", dir.to_str().unwrap(), "--load"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for line in ["train    3 frames, first image Some((32, 24))", "val      1 frames", "test     2 frames", "decoded 3 images"] {
+        assert!(out.contains(line), "missing {line:?} in:\n{out}");
+    }
 }
 
 #[test]

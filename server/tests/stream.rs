@@ -282,13 +282,13 @@ async fn picture_loss_brings_an_idr_and_a_full_master_says_no_capacity() {
         }
         if let Some(after) = pli_sent_after
             && info.frame > after
-            && info.idr
+            && info.times.idr
         {
             break;
         }
     }
-    assert!(frames[0].idr, "the first frame is an IDR");
-    assert!(frames.iter().skip(1).filter(|f| f.idr).count() == 1, "exactly one more IDR: {:?}", frames.iter().map(|f| f.idr).collect::<Vec<_>>());
+    assert!(frames[0].times.idr, "the first frame is an IDR");
+    assert!(frames.iter().skip(1).filter(|f| f.times.idr).count() == 1, "exactly one more IDR: {:?}", frames.iter().map(|f| f.times.idr).collect::<Vec<_>>());
     stop.store(true, Ordering::Relaxed);
     posing.await.unwrap();
 }
