@@ -1,7 +1,8 @@
 //! Nephele renderer: the i-NOLF model of NEPHELE (Luo et al., arXiv 2303.04086) — asset
 //! format, camera and ray maths, a plain CPU reference and a wgpu compute backend that agree
 //! on DESIGN §3, procedural assets, and training data: posed-image datasets (NeRF-synthetic,
-//! instant-ngp) and exactly ray-traced synthetic ones. No tokio, no network.
+//! instant-ngp), exactly ray-traced synthetic ones, and CPU training of the i-NGP teacher
+//! field (`train`). No tokio, no network.
 
 pub mod asset;
 pub mod camera;
@@ -15,6 +16,10 @@ pub mod psh;
 pub mod render;
 pub mod sh;
 pub mod synth;
+pub mod train;
+
+#[cfg(test)]
+mod test_util;
 
 pub use asset::{Asset, AssetError};
 pub use camera::{Instance, Intrinsics, PoseError, View};

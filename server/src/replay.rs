@@ -247,7 +247,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
             f = client.frames.recv() => match f {
                 Some(mut f) => {
                     // Keep pixels only of frames that will be compared or saved.
-                    let sampled = opts.quality_every > 0 && frames.len() % opts.quality_every == 0;
+                    let sampled = opts.quality_every > 0 && frames.len().is_multiple_of(opts.quality_every);
                     if !sampled && opts.save_dir.is_none() {
                         f.rgba = Vec::new();
                     }

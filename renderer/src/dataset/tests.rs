@@ -1,7 +1,7 @@
 //! Round trips through the synthetic generator, the instant-ngp layout, and every kind of
 //! broken input (each must give the right error naming its file and field, never a panic).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{DVec3, Vec3};
 use serde_json::{Value, json};
@@ -12,23 +12,7 @@ use crate::{
     synth::{self, SynthConfig, SynthScene},
 };
 
-/// A fresh directory under the system temp dir, removed on drop.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(tag: &str) -> Self {
-        let path = std::env::temp_dir().join(format!("nephele-dataset-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&path);
-        std::fs::create_dir_all(&path).unwrap();
-        Self(path)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+use crate::test_util::TempDir;
 
 fn tiny(scene: SynthScene) -> SynthConfig {
     SynthConfig { scene, width: 32, height: 32, n_train: 4, n_val: 2, n_test: 2, seed: 11 }

@@ -1,0 +1,444 @@
+//! The train-time tiny MLP: fully connected layers, ReLU on hidden layers, a linear output
+//! (the caller applies its own output activation), in f32. Separate from the inference
+//! [`crate::mlp::SpecularMlp`] because training needs a batched forward that keeps every
+//! activation and a hand-derived backward pass.
+//!
+//! Batches are row-major (one sample per row) and every layer is a small matrix product,
+//! done by [`gemm`] / [`gemm_tn`]: register tiles of 4 rows × 8 columns whose inner loop the
+//! compiler turns into SIMD, so weights and activations are loaded once per tile rather than
+//! once per multiply-add. Forward: `Y = X·Wᵀ + b` (a transposed copy of each weight matrix is
+//! kept for it), ReLU on hidden layers. Backward, layer by layer from the last:
+//! `δ = ∂loss/∂pre-activation`, `∂b += Σ_rows δ`, `∂W += δᵀ·X`, `∂X = δ·W`, and through the
+//! ReLU `δ_prev = ∂X ⊙ [X > 0]`. Callers split big batches into chunks and run them in
+//! parallel, each chunk with its own gradient buffer, then sum the buffers in chunk order.
+
+use rand::Rng;
+
+/// Parameter layout: for each layer `l`, `W_l` (`out × in`, row-major) then `b_l` (`out`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mlp {
+    /// `[input, hidden…, output]`.
+    widths: Vec<usize>,
+    params: Vec<f32>,
+    /// Per layer `W_lᵀ` (`in × out`), rebuilt from `params` after every change.
+    transposed: Vec<f32>,
+}
+
+/// Activations of one batch, kept for the backward pass: `layers[l]` is the output of layer
+/// `l` (`rows × widths[l+1]`), after ReLU for hidden layers, raw for the last.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MlpTape {
+    pub rows: usize,
+    pub layers: Vec<Vec<f32>>,
+}
+
+impl MlpTape {
+    /// The network's raw output, `rows × output width`.
+    pub fn output(&self) -> &[f32] {
+        self.layers.last().map(Vec::as_slice).unwrap_or(&[])
+    }
+
+    /// The tape of the given rows only, in that order.
+    pub fn gather(&self, rows: &[u32]) -> MlpTape {
+        let layers = self.layers.iter().map(|l| gather_rows(l, l.len() / self.rows.max(1), rows)).collect();
+        MlpTape { rows: rows.len(), layers }
+    }
+}
+
+/// Rows `rows` of a row-major matrix of the given width, in that order.
+pub fn gather_rows(data: &[f32], width: usize, rows: &[u32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(rows.len() * width);
+    for &r in rows {
+        out.extend_from_slice(&data[r as usize * width..(r as usize + 1) * width]);
+    }
+    out
+}
+
+impl Mlp {
+    /// He-uniform weights (`±√(6/fan_in)`) for ReLU layers, Glorot-uniform for the output
+    /// layer, zero biases.
+    pub fn new(widths: &[usize], rng: &mut impl Rng) -> Self {
+        assert!(widths.len() >= 2 && widths.iter().all(|&w| w > 0), "bad MLP widths {widths:?}");
+        let mut params = Vec::with_capacity(Self::count(widths));
+        let layers = widths.len() - 1;
+        for l in 0..layers {
+            let (fan_in, fan_out) = (widths[l], widths[l + 1]);
+            let limit = if l + 1 < layers { (6.0 / fan_in as f32).sqrt() } else { (6.0 / (fan_in + fan_out) as f32).sqrt() };
+            params.extend((0..fan_in * fan_out).map(|_| rng.random_range(-limit..limit)));
+            params.extend(std::iter::repeat_n(0.0, fan_out));
+        }
+        let mut mlp = Self { widths: widths.to_vec(), params, transposed: Vec::new() };
+        mlp.rebuild();
+        mlp
+    }
+
+    fn count(widths: &[usize]) -> usize {
+        widths.windows(2).map(|w| w[0] * w[1] + w[1]).sum()
+    }
+
+    pub fn widths(&self) -> &[usize] {
+        &self.widths
+    }
+    pub fn input_width(&self) -> usize {
+        self.widths[0]
+    }
+    pub fn output_width(&self) -> usize {
+        *self.widths.last().expect("at least two widths")
+    }
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    /// Changes the parameters (e.g. an optimiser step) and refreshes the transposed copy.
+    pub fn update(&mut self, f: impl FnOnce(&mut [f32])) {
+        f(&mut self.params);
+        self.rebuild();
+    }
+
+    /// Index ranges of the weight matrices (not biases), for L2 regularisation.
+    pub fn weight_ranges(&self) -> Vec<std::ops::Range<usize>> {
+        let mut at = 0;
+        self.widths
+            .windows(2)
+            .map(|w| {
+                let range = at..at + w[0] * w[1];
+                at += w[0] * w[1] + w[1];
+                range
+            })
+            .collect()
+    }
+
+    fn rebuild(&mut self) {
+        self.transposed.clear();
+        let mut at = 0;
+        for w in self.widths.windows(2) {
+            let (inputs, outputs) = (w[0], w[1]);
+            let weights = &self.params[at..at + inputs * outputs];
+            for i in 0..inputs {
+                self.transposed.extend((0..outputs).map(|j| weights[j * inputs + i]));
+            }
+            at += inputs * outputs + outputs;
+        }
+    }
+
+    /// Forward pass of `input` (`rows × input width`), filling `tape`.
+    pub fn forward(&self, input: &[f32], tape: &mut MlpTape) {
+        let rows = input.len() / self.input_width();
+        assert_eq!(input.len(), rows * self.input_width());
+        let layers = self.widths.len() - 1;
+        tape.rows = rows;
+        tape.layers.resize_with(layers, Vec::new);
+        let (mut at_params, mut at_transposed) = (0, 0);
+        for l in 0..layers {
+            let (inputs, outputs) = (self.widths[l], self.widths[l + 1]);
+            let wt = &self.transposed[at_transposed..at_transposed + inputs * outputs];
+            let bias = &self.params[at_params + inputs * outputs..at_params + inputs * outputs + outputs];
+            let (before, after) = tape.layers.split_at_mut(l);
+            let x_all: &[f32] = if l == 0 { input } else { &before[l - 1] };
+            let y_all = &mut after[0];
+            y_all.clear();
+            y_all.resize(rows * outputs, 0.0);
+            for y in y_all.chunks_exact_mut(outputs) {
+                y.copy_from_slice(bias);
+            }
+            gemm(x_all, wt, y_all, inputs, outputs);
+            if l + 1 < layers {
+                y_all.iter_mut().for_each(|v| *v = v.max(0.0));
+            }
+            at_params += inputs * outputs + outputs;
+            at_transposed += inputs * outputs;
+        }
+    }
+
+    /// Backward pass: adds `∂loss/∂params` to `grad` (layout of [`Self::params`]) given
+    /// `d_output` (`rows × output width`, ∂loss/∂raw output) and the tape of the forward pass
+    /// of `input`. Writes `∂loss/∂input` into `d_input` when given (`rows × input width`).
+    pub fn backward(&self, input: &[f32], tape: &MlpTape, d_output: &[f32], grad: &mut [f32], mut d_input: Option<&mut [f32]>) {
+        let rows = tape.rows;
+        let layers = self.widths.len() - 1;
+        assert_eq!(grad.len(), self.params.len());
+        assert_eq!(input.len(), rows * self.input_width());
+        assert_eq!(d_output.len(), rows * self.output_width());
+        let mut offsets = Vec::with_capacity(layers);
+        let mut at = 0;
+        for w in self.widths.windows(2) {
+            offsets.push(at);
+            at += w[0] * w[1] + w[1];
+        }
+        let mut delta = d_output.to_vec();
+        let mut d_x = Vec::new();
+        for l in (0..layers).rev() {
+            let (inputs, outputs) = (self.widths[l], self.widths[l + 1]);
+            let x = if l == 0 { input } else { &tape.layers[l - 1][..] };
+            let weights = &self.params[offsets[l]..offsets[l] + inputs * outputs];
+            let (g_weights, g_bias) = grad[offsets[l]..offsets[l] + inputs * outputs + outputs].split_at_mut(inputs * outputs);
+            for d in delta.chunks_exact(outputs) {
+                for (g, &v) in g_bias.iter_mut().zip(d) {
+                    *g += v;
+                }
+            }
+            gemm_tn(&delta, x, g_weights, rows, outputs, inputs);
+            let out: &mut Vec<f32> = match (l, d_input.as_deref_mut()) {
+                (0, Some(d)) => {
+                    assert_eq!(d.len(), input.len());
+                    d.fill(0.0);
+                    gemm(&delta, weights, d, outputs, inputs);
+                    break;
+                }
+                (0, None) => break,
+                _ => &mut d_x,
+            };
+            out.clear();
+            out.resize(rows * inputs, 0.0);
+            gemm(&delta, weights, out, outputs, inputs);
+            // Through the ReLU of the previous layer: its output x is 0 where it was cut.
+            for (d, &xi) in out.iter_mut().zip(x) {
+                if xi <= 0.0 {
+                    *d = 0.0;
+                }
+            }
+            std::mem::swap(&mut delta, &mut d_x);
+        }
+    }
+}
+
+/// Rows of a register tile.
+const TILE_ROWS: usize = 4;
+/// Columns of a register tile (two 4-wide or one 8-wide vector).
+const TILE_COLS: usize = 8;
+
+/// `c += a·b` with `a` = `rows × k`, `b` = `k × n`, `c` = `rows × n`, all row-major.
+pub fn gemm(a: &[f32], b: &[f32], c: &mut [f32], k: usize, n: usize) {
+    let rows = c.len() / n.max(1);
+    assert!(a.len() == rows * k && b.len() == k * n && c.len() == rows * n);
+    let full_cols = n - n % TILE_COLS;
+    let mut r0 = 0;
+    while r0 < rows {
+        let tile_rows = (rows - r0).min(TILE_ROWS);
+        let a_rows = &a[r0 * k..(r0 + tile_rows) * k];
+        let c_rows = &mut c[r0 * n..(r0 + tile_rows) * n];
+        if tile_rows == TILE_ROWS {
+            for c0 in (0..full_cols).step_by(TILE_COLS) {
+                let mut acc = [[0f32; TILE_COLS]; TILE_ROWS];
+                let (a0, a1, a2, a3) = (&a_rows[..k], &a_rows[k..2 * k], &a_rows[2 * k..3 * k], &a_rows[3 * k..4 * k]);
+                for (kk, b_row) in b.chunks_exact(n).enumerate() {
+                    let b_tile: &[f32; TILE_COLS] = b_row[c0..c0 + TILE_COLS].try_into().expect("tile");
+                    let a_col = [a0[kk], a1[kk], a2[kk], a3[kk]];
+                    for rr in 0..TILE_ROWS {
+                        for cc in 0..TILE_COLS {
+                            acc[rr][cc] += a_col[rr] * b_tile[cc];
+                        }
+                    }
+                }
+                for rr in 0..TILE_ROWS {
+                    for (out, v) in c_rows[rr * n + c0..rr * n + c0 + TILE_COLS].iter_mut().zip(acc[rr]) {
+                        *out += v;
+                    }
+                }
+            }
+        }
+        // Leftover rows and columns, plainly.
+        let first_plain_col = if tile_rows == TILE_ROWS { full_cols } else { 0 };
+        if first_plain_col < n {
+            for rr in 0..tile_rows {
+                let a_row = &a_rows[rr * k..(rr + 1) * k];
+                let c_row = &mut c_rows[rr * n + first_plain_col..(rr + 1) * n];
+                for (&av, b_row) in a_row.iter().zip(b.chunks_exact(n)) {
+                    for (out, &bv) in c_row.iter_mut().zip(&b_row[first_plain_col..]) {
+                        *out += av * bv;
+                    }
+                }
+            }
+        }
+        r0 += tile_rows;
+    }
+}
+
+/// `c += aᵀ·b` with `a` = `rows × m`, `b` = `rows × n`, `c` = `m × n`, all row-major
+/// (the weight gradient `δᵀ·X`).
+pub fn gemm_tn(a: &[f32], b: &[f32], c: &mut [f32], rows: usize, m: usize, n: usize) {
+    assert!(a.len() == rows * m && b.len() == rows * n && c.len() == m * n);
+    let full_m = m - m % TILE_ROWS;
+    let full_n = n - n % TILE_COLS;
+    for j0 in (0..full_m).step_by(TILE_ROWS) {
+        for i0 in (0..full_n).step_by(TILE_COLS) {
+            let mut acc = [[0f32; TILE_COLS]; TILE_ROWS];
+            for (a_row, b_row) in a.chunks_exact(m).zip(b.chunks_exact(n)) {
+                let a_tile: &[f32; TILE_ROWS] = a_row[j0..j0 + TILE_ROWS].try_into().expect("tile");
+                let b_tile: &[f32; TILE_COLS] = b_row[i0..i0 + TILE_COLS].try_into().expect("tile");
+                for jj in 0..TILE_ROWS {
+                    for ii in 0..TILE_COLS {
+                        acc[jj][ii] += a_tile[jj] * b_tile[ii];
+                    }
+                }
+            }
+            for jj in 0..TILE_ROWS {
+                for (out, v) in c[(j0 + jj) * n + i0..(j0 + jj) * n + i0 + TILE_COLS].iter_mut().zip(acc[jj]) {
+                    *out += v;
+                }
+            }
+        }
+    }
+    // Leftover rows of c (j ≥ full_m) over all columns, and leftover columns (i ≥ full_n).
+    for (a_row, b_row) in a.chunks_exact(m).zip(b.chunks_exact(n)) {
+        for j in 0..m {
+            let av = a_row[j];
+            let cols = if j < full_m { full_n..n } else { 0..n };
+            if cols.is_empty() || av == 0.0 {
+                continue;
+            }
+            for (out, &bv) in c[j * n + cols.start..j * n + cols.end].iter_mut().zip(&b_row[cols]) {
+                *out += av * bv;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{SeedableRng, rngs::SmallRng};
+
+    /// Plain per-sample reference forward, written directly from the definition.
+    fn reference_forward(mlp: &Mlp, x: &[f32]) -> Vec<f32> {
+        let mut v = x.to_vec();
+        let mut at = 0;
+        let layers = mlp.widths.len() - 1;
+        for l in 0..layers {
+            let (inputs, outputs) = (mlp.widths[l], mlp.widths[l + 1]);
+            let w = &mlp.params[at..at + inputs * outputs];
+            let b = &mlp.params[at + inputs * outputs..at + inputs * outputs + outputs];
+            v = (0..outputs)
+                .map(|j| {
+                    let s = b[j] + (0..inputs).map(|i| w[j * inputs + i] * v[i]).sum::<f32>();
+                    if l + 1 < layers { s.max(0.0) } else { s }
+                })
+                .collect();
+            at += inputs * outputs + outputs;
+        }
+        v
+    }
+
+    fn setup(widths: &[usize], rows: usize, seed: u64) -> (Mlp, Vec<f32>, Vec<f32>) {
+        let mut rng = SmallRng::seed_from_u64(seed);
+        let mut mlp = Mlp::new(widths, &mut rng);
+        // Non-zero biases so the check covers them.
+        mlp.update(|p| p.iter_mut().for_each(|v| *v += rng.random_range(-0.1..0.1)));
+        let x: Vec<f32> = (0..rows * widths[0]).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let r: Vec<f32> = (0..rows * widths[widths.len() - 1]).map(|_| rng.random_range(-1.0..1.0)).collect();
+        (mlp, x, r)
+    }
+
+    #[test]
+    fn train_mlp_forward_matches_the_definition() {
+        let (mlp, x, _) = setup(&[7, 16, 9, 3], 20, 1);
+        let mut tape = MlpTape::default();
+        mlp.forward(&x, &mut tape);
+        for (row, out) in x.chunks_exact(7).zip(tape.output().chunks_exact(3)) {
+            let want = reference_forward(&mlp, row);
+            for (a, b) in out.iter().zip(&want) {
+                assert!((a - b).abs() < 1e-5, "{out:?} vs {want:?}");
+            }
+        }
+    }
+
+    /// loss = Σ r · output, in f64 over the f32 forward pass.
+    fn loss(mlp: &Mlp, x: &[f32], r: &[f32]) -> f64 {
+        let mut tape = MlpTape::default();
+        mlp.forward(x, &mut tape);
+        tape.output().iter().zip(r).map(|(&o, &r)| o as f64 * r as f64).sum()
+    }
+
+    fn relative_error(analytic: f64, numeric: f64) -> f64 {
+        (analytic - numeric).abs() / analytic.abs().max(numeric.abs()).max(1e-3)
+    }
+
+    #[test]
+    fn train_mlp_gradients_match_finite_differences() {
+        let widths = [6, 32, 32, 4];
+        let (mut mlp, x, r) = setup(&widths, 8, 2);
+        let mut tape = MlpTape::default();
+        mlp.forward(&x, &mut tape);
+        let mut grad = vec![0.0; mlp.params().len()];
+        let mut d_x = vec![0.0; x.len()];
+        mlp.backward(&x, &tape, &r, &mut grad, Some(&mut d_x));
+        // ReLU kinks make a few finite differences meaningless; demand 95 % agreement
+        // (a wrong backward fails nearly all of them).
+        let eps = 1e-3f32;
+        let (mut checked, mut agreed) = (0, 0);
+        let mut rng = SmallRng::seed_from_u64(9);
+        for _ in 0..200 {
+            let i = rng.random_range(0..grad.len());
+            let keep = mlp.params()[i];
+            mlp.update(|p| p[i] = keep + eps);
+            let up = loss(&mlp, &x, &r);
+            mlp.update(|p| p[i] = keep - eps);
+            let down = loss(&mlp, &x, &r);
+            mlp.update(|p| p[i] = keep);
+            let fd = (up - down) / (2.0 * eps as f64);
+            checked += 1;
+            agreed += (relative_error(grad[i] as f64, fd) < 1e-2) as usize;
+        }
+        assert!(agreed * 100 >= checked * 95, "params: {agreed} of {checked} agree");
+        let (mut checked, mut agreed) = (0, 0);
+        let mut x_moved = x.clone();
+        for i in 0..x.len() {
+            x_moved[i] = x[i] + eps;
+            let up = loss(&mlp, &x_moved, &r);
+            x_moved[i] = x[i] - eps;
+            let down = loss(&mlp, &x_moved, &r);
+            x_moved[i] = x[i];
+            let fd = (up - down) / (2.0 * eps as f64);
+            checked += 1;
+            agreed += (relative_error(d_x[i] as f64, fd) < 1e-2) as usize;
+        }
+        assert!(agreed * 100 >= checked * 95, "inputs: {agreed} of {checked} agree");
+    }
+
+    #[test]
+    fn train_mlp_gemm_matches_plain_products() {
+        let mut rng = SmallRng::seed_from_u64(4);
+        for (rows, k, n) in [(1, 1, 1), (4, 8, 8), (9, 5, 16), (7, 64, 3), (13, 16, 64), (3, 7, 9)] {
+            let a: Vec<f32> = (0..rows * k).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let b: Vec<f32> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let mut c: Vec<f32> = (0..rows * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let want: Vec<f32> =
+                (0..rows * n).map(|i| c[i] + (0..k).map(|kk| a[i / n * k + kk] * b[kk * n + i % n]).sum::<f32>()).collect();
+            gemm(&a, &b, &mut c, k, n);
+            assert!(c.iter().zip(&want).all(|(x, y)| (x - y).abs() < 1e-4), "gemm {rows}x{k}x{n}");
+            // aᵀ·b with a = rows × k and b = rows × n.
+            let b2: Vec<f32> = (0..rows * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let mut c2 = vec![0.5f32; k * n];
+            let want: Vec<f32> = (0..k * n).map(|i| 0.5 + (0..rows).map(|r| a[r * k + i / n] * b2[r * n + i % n]).sum::<f32>()).collect();
+            gemm_tn(&a, &b2, &mut c2, rows, k, n);
+            assert!(c2.iter().zip(&want).all(|(x, y)| (x - y).abs() < 1e-4), "gemm_tn {rows}x{k}x{n}");
+        }
+    }
+
+    #[test]
+    fn train_mlp_backward_accumulates_and_gathers() {
+        let (mlp, x, mut r) = setup(&[5, 8, 2], 4, 3);
+        r[2..4].fill(0.0); // row 1 has no gradient
+        let mut tape = MlpTape::default();
+        mlp.forward(&x, &mut tape);
+        let mut once = vec![0.0; mlp.params().len()];
+        let mut d_x = vec![1.0; x.len()];
+        mlp.backward(&x, &tape, &r, &mut once, Some(&mut d_x));
+        assert!(d_x[5..10].iter().all(|&v| v == 0.0));
+        let mut twice = once.clone();
+        mlp.backward(&x, &tape, &r, &mut twice, None);
+        for (a, b) in once.iter().zip(&twice) {
+            assert!((2.0 * a - b).abs() <= 1e-6 * a.abs().max(1.0));
+        }
+        // A gathered tape backpropagates like the rows it came from.
+        let rows = [3u32, 2, 0];
+        let (x_sub, r_sub) = (gather_rows(&x, 5, &rows), gather_rows(&r, 2, &rows));
+        let mut sub = vec![0.0; mlp.params().len()];
+        mlp.backward(&x_sub, &tape.gather(&rows), &r_sub, &mut sub, None);
+        for (a, b) in once.iter().zip(&sub) {
+            assert!((a - b).abs() <= 1e-5 * a.abs().max(1.0), "{a} vs {b}");
+        }
+        let weight_count: usize = mlp.weight_ranges().iter().map(|r| r.len()).sum();
+        assert_eq!(weight_count, 5 * 8 + 8 * 2);
+    }
+}
