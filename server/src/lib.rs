@@ -10,5 +10,6 @@ pub mod master;
 pub mod replay;
 pub mod rtc;
 pub mod session;
+pub mod train_cli;
 pub mod web;
 pub mod wire;

@@ -110,6 +110,54 @@ enum Command {
         #[arg(long)]
         load: bool,
     },
+    /// Train the i-NGP stage on a posed-image dataset (CPU), with checkpoints in --out.
+    Train {
+        /// NeRF-synthetic folder or instant-ngp transforms.json / folder.
+        dataset: PathBuf,
+        /// Output directory (the checkpoint is DIR/ngp.ckpt).
+        #[arg(long)]
+        out: PathBuf,
+        /// tiny, fast or default.
+        #[arg(long, default_value = "default")]
+        preset: String,
+        /// Total i-NGP steps (default: tiny 500, fast 5000, default 20000).
+        #[arg(long)]
+        steps: Option<u64>,
+        /// Shrink images by 1, 2, 4 or 8.
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Continue from DIR/ngp.ckpt (same preset and seed).
+        #[arg(long)]
+        resume: bool,
+        /// Write the checkpoint every N steps (and at the end).
+        #[arg(long, default_value_t = 500)]
+        checkpoint_every: u64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Print a JSON summary.
+        #[arg(long)]
+        json: bool,
+        /// Without a terminal (no progress bar), log progress every N steps.
+        #[arg(long, default_value_t = 100)]
+        log_every: u64,
+    },
+    /// Render every view of a dataset split with a trained checkpoint over white; print
+    /// per-view and mean PSNR / SSIM, optionally write ground truth | render | |error|×4 PNGs.
+    Eval {
+        checkpoint: PathBuf,
+        dataset: PathBuf,
+        /// test, val or train.
+        #[arg(long, default_value = "test")]
+        split: String,
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Directory for the side-by-side PNGs.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Benchmarks that print tables.
     Bench {
         #[command(subcommand)]
@@ -362,6 +410,15 @@ fn main() -> Result<()> {
                 }
             }
             Ok(())
+        }
+        Some(Command::Train { dataset, out, preset, steps, downscale, resume, checkpoint_every, seed, json, log_every }) => {
+            use nephele::train_cli::{TrainOptions, train};
+            train(&TrainOptions { dataset, out, preset, steps, downscale, resume, checkpoint_every, seed, json, log_every }).map(|_| ())
+        }
+        Some(Command::Eval { checkpoint, dataset, split, downscale, out, json }) => {
+            use nephele::train_cli::{EvalOptions, eval};
+            let split = split.parse().map_err(anyhow::Error::msg)?;
+            eval(&EvalOptions { checkpoint, dataset, split, downscale, out, json }).map(|_| ())
         }
         Some(Command::Traces { out }) => {
             std::fs::create_dir_all(&out)?;

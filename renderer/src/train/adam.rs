@@ -45,6 +45,17 @@ impl Adam {
         self.steps
     }
 
+    /// First and second moment estimates, laid out like the parameters (for checkpoints).
+    pub fn moments(&self) -> (&[f32], &[f32]) {
+        (&self.first_moment, &self.second_moment)
+    }
+
+    /// Restores a state saved from [`Self::moments`] and [`Self::steps`].
+    pub fn from_state(config: AdamConfig, first_moment: Vec<f32>, second_moment: Vec<f32>, steps: u32) -> Self {
+        assert_eq!(first_moment.len(), second_moment.len());
+        Self { config, first_moment, second_moment, steps }
+    }
+
     /// One update of `params` from `grads`, which are zeroed afterwards. With `skip_zero`,
     /// entries whose gradient is exactly 0 are left alone.
     pub fn step(&mut self, params: &mut [f32], grads: &mut [f32], skip_zero: bool) {

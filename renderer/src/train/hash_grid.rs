@@ -67,19 +67,10 @@ impl HashGridConfig {
         if ok { Ok(()) } else { Err(format!("hash grid config out of range: {self:?}")) }
     }
 
-    /// Per-level growth factor `b = exp((ln N_max − ln N_min) / (L − 1))`.
-    pub fn growth_factor(&self) -> f64 {
-        if self.levels <= 1 {
-            return 1.0;
-        }
-        ((self.finest_resolution as f64 / self.base_resolution as f64).ln() / (self.levels - 1) as f64).exp()
-    }
-}
-
-impl HashGrid {
-    /// A grid with parameters uniform in ±[`INIT_SCALE`].
-    pub fn new(config: HashGridConfig, rng: &mut impl Rng) -> Self {
-        config.validate().expect("valid hash grid config");
+    /// Resolution, storage and place in the table of every level (no allocation of the
+    /// table itself, so checkpoints can check their tensor sizes first).
+    pub fn layout(&self) -> Vec<Level> {
+        let config = self;
         let table = 1usize << config.log2_table_size;
         let growth = config.growth_factor();
         let mut levels = Vec::with_capacity(config.levels as usize);
@@ -93,7 +84,25 @@ impl HashGrid {
             levels.push(Level { resolution, dense, first_entry, entries });
             first_entry += entries;
         }
-        let params = (0..first_entry * FEATURES_PER_LEVEL).map(|_| rng.random_range(-INIT_SCALE..INIT_SCALE)).collect();
+        levels
+    }
+
+    /// Per-level growth factor `b = exp((ln N_max − ln N_min) / (L − 1))`.
+    pub fn growth_factor(&self) -> f64 {
+        if self.levels <= 1 {
+            return 1.0;
+        }
+        ((self.finest_resolution as f64 / self.base_resolution as f64).ln() / (self.levels - 1) as f64).exp()
+    }
+}
+
+impl HashGrid {
+    /// A grid with parameters uniform in ±[`INIT_SCALE`].
+    pub fn new(config: HashGridConfig, rng: &mut impl Rng) -> Self {
+        config.validate().expect("valid hash grid config");
+        let levels = config.layout();
+        let entries = levels.last().map_or(0, |l| l.first_entry + l.entries);
+        let params = (0..entries * FEATURES_PER_LEVEL).map(|_| rng.random_range(-INIT_SCALE..INIT_SCALE)).collect();
         Self { config, levels, params }
     }
 

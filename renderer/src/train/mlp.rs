@@ -72,7 +72,8 @@ impl Mlp {
         mlp
     }
 
-    fn count(widths: &[usize]) -> usize {
+    /// Parameters of an MLP with these widths (`[input, hidden…, output]`).
+    pub fn count(widths: &[usize]) -> usize {
         widths.windows(2).map(|w| w[0] * w[1] + w[1]).sum()
     }
 

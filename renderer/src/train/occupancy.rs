@@ -31,6 +31,24 @@ impl OccupancyGrid {
         Self { bounds, resolution, density: vec![f32::NAN; cells], bits: vec![u64::MAX; cells.div_ceil(64)] }
     }
 
+    /// Restores a grid from [`Self::densities`] and [`Self::bits`] (checkpoints); `None` if
+    /// their lengths do not fit `resolution`.
+    pub fn from_state(bounds: Aabb, resolution: u32, density: Vec<f32>, bits: Vec<u64>) -> Option<Self> {
+        let cells = (resolution as usize).pow(3);
+        let ok = bounds.is_valid() && (1..=1024).contains(&resolution) && density.len() == cells && bits.len() == cells.div_ceil(64);
+        ok.then_some(Self { bounds, resolution, density, bits })
+    }
+
+    /// Running density estimate per cell (x fastest); NaN = never evaluated.
+    pub fn densities(&self) -> &[f32] {
+        &self.density
+    }
+
+    /// Occupancy bits, 64 cells per word, cell `c` at bit `c % 64` of word `c / 64`.
+    pub fn bits(&self) -> &[u64] {
+        &self.bits
+    }
+
     pub fn cell_count(&self) -> usize {
         self.density.len()
     }

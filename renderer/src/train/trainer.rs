@@ -118,6 +118,68 @@ impl TrainConfig {
     }
 }
 
+impl TrainConfig {
+    /// Between [`Self::tiny`] and [`Self::full`], for CPU runs on real scenes in minutes
+    /// rather than hours: L = 16, T = 2¹⁷, resolutions 16…1024, 2048 rays per batch, 64³
+    /// occupancy (¼ of the cells per update), 512 steps per diagonal.
+    pub fn fast() -> Self {
+        let full = Self::full();
+        Self {
+            field: FieldConfig {
+                grid: HashGridConfig { levels: 16, log2_table_size: 17, base_resolution: 16, finest_resolution: 1024 },
+                ..full.field
+            },
+            steps_per_diagonal: 512,
+            rays_per_batch: 2048,
+            occupancy: OccupancyConfig { resolution: 64, fraction_per_update: 0.25, ..full.occupancy },
+            ..full
+        }
+    }
+
+    /// Names accepted by [`Self::preset`].
+    pub const PRESETS: [&'static str; 3] = ["tiny", "fast", "default"];
+
+    /// `tiny`, `fast` or `default` (= [`Self::full`]).
+    pub fn preset(name: &str) -> Option<Self> {
+        match name {
+            "tiny" => Some(Self::tiny()),
+            "fast" => Some(Self::fast()),
+            "default" | "full" => Some(Self::full()),
+            _ => None,
+        }
+    }
+
+    /// Range checks on everything that sizes an allocation or a loop, so a configuration
+    /// read from a file cannot ask for absurd memory or panic in [`Trainer::new`].
+    pub fn validate(&self) -> Result<(), String> {
+        self.field.grid.validate()?;
+        let widths_ok = |w: &[usize]| w.len() <= 8 && w.iter().all(|&n| (1..=1024).contains(&n));
+        if !widths_ok(&self.field.density_hidden) || !widths_ok(&self.field.colour_hidden) {
+            return Err(format!("MLP hidden widths out of range: {:?} / {:?}", self.field.density_hidden, self.field.colour_hidden));
+        }
+        if !self.bounds.is_valid() {
+            return Err(format!("invalid scene bounds {:?}", self.bounds));
+        }
+        if !(1..=1 << 16).contains(&self.steps_per_diagonal) {
+            return Err(format!("steps_per_diagonal {} out of range", self.steps_per_diagonal));
+        }
+        if !(1..=1 << 24).contains(&self.rays_per_batch) || !(1..=1 << 16).contains(&self.rays_per_chunk) {
+            return Err(format!("rays per batch / chunk {} / {} out of range", self.rays_per_batch, self.rays_per_chunk));
+        }
+        if !(1..=512).contains(&self.occupancy.resolution) {
+            return Err(format!("occupancy resolution {} out of range", self.occupancy.resolution));
+        }
+        let finite = [self.early_stop_transmittance, self.l2_mlp_weights, self.adam.learning_rate, self.adam.beta1, self.adam.beta2, self.adam.epsilon]
+            .iter()
+            .chain(&[self.occupancy.decay, self.occupancy.fraction_per_update, self.occupancy.min_optical_thickness])
+            .all(|v| v.is_finite());
+        if !finite {
+            return Err("non-finite optimiser or occupancy setting".into());
+        }
+        Ok(())
+    }
+}
+
 impl Default for TrainConfig {
     fn default() -> Self {
         Self::full()
@@ -437,5 +499,9 @@ impl Trainer {
     }
 }
 
+pub mod checkpoint;
+pub mod eval;
+
 #[cfg(test)]
 mod tests;
+
