@@ -86,6 +86,11 @@ impl Intrinsics {
     }
 }
 
+/// Largest entry of |RᵀR − I|: 0 for a rotation (or reflection), grows with scale and shear.
+pub fn rotation_deviation(r: &DMat3) -> f64 {
+    (r.transpose() * *r - DMat3::IDENTITY).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()))
+}
+
 /// A camera: pose plus intrinsics.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct View {
@@ -137,7 +142,7 @@ impl View {
             return Err(PoseError::NotAffine);
         }
         let r = DMat3::from_mat4(*m);
-        let deviation = (r.transpose() * r - DMat3::IDENTITY).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let deviation = rotation_deviation(&r);
         if deviation > 1e-3 {
             return Err(PoseError::NotRigid { deviation });
         }

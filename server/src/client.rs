@@ -31,7 +31,7 @@ use webrtc::{
 
 use crate::{
     encode::parse_pose_seq,
-    rtc::{RtcConfig, build_api},
+    rtc::{RtcConfig, build_api, candidate_json},
     wire::{PoseMessage, ToViewer},
 };
 
@@ -120,8 +120,7 @@ impl StreamClient {
             let tx = ice_tx.clone();
             Box::pin(async move {
                 if let Some(Ok(init)) = c.map(|c| c.to_json()) {
-                    let candidate = serde_json::json!({"candidate": init.candidate, "sdpMid": null, "sdpMLineIndex": 0});
-                    let _ = tx.send(ToSignal::Ice { session: None, candidate });
+                    let _ = tx.send(ToSignal::Ice { session: None, candidate: candidate_json(&init) });
                 }
             })
         }));

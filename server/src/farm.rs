@@ -41,8 +41,7 @@ impl Farm {
                 Some((n, a)) => (n.to_owned(), a),
                 None => (scene_name_of(spec), spec.as_str()),
             };
-            let valid = !name.is_empty() && name.len() <= 64 && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
-            if !valid {
+            if !nephele_signaling::protocol::is_valid_name(&name) {
                 bail!("scene name {name:?} must be 1..=64 characters from [A-Za-z0-9_-] (write name=asset)");
             }
             let asset = load_asset(asset_spec)?;

@@ -216,7 +216,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
     let mut client = StreamClient::connect(&opts.client).await?;
     let (w, h) = (opts.client.width, opts.client.height);
     let intrinsics = trace.intrinsics(w, h);
-    let mut sent_at: HashMap<u64, (Instant, usize)> = HashMap::new();
+    let mut sent_at: HashMap<u64, (Instant, PoseMessage)> = HashMap::new();
     let mut frames: Vec<ReceivedFrame> = Vec::new();
     let mut infos: Vec<(FrameInfo, Instant)> = Vec::new();
     let mut errors = Vec::new();
@@ -237,7 +237,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
                     intrinsics,
                     world_from_anchor: opts.anchor,
                 };
-                sent_at.insert(u64::from(seq), (Instant::now(), next));
+                sent_at.insert(u64::from(seq), (Instant::now(), pose));
                 client.send_pose(&pose).await?;
                 next += 1;
                 if next == trace.poses.len() {
@@ -300,21 +300,13 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
     let mut quality = Vec::new();
     if let (Some((prepared, settings)), true) = (reference, opts.quality_every > 0) {
         let background = if opts.client.mode == Mode::Ar { AR_BACKGROUND } else { VIEWER_BACKGROUND };
-        let instance = match opts.anchor {
-            Some(a) => PoseMessage { seq: 0, t_client_ms: 0.0, world_from_camera: Mat4::IDENTITY, intrinsics, world_from_anchor: Some(a) }
-                .view((w, h))
-                .map(|(_, i)| i)
-                .map_err(|e| anyhow::anyhow!("{e}"))?,
-            None => nephele_renderer::Instance::default(),
-        };
         for f in frames.iter().step_by(opts.quality_every) {
-            let Some((_, index)) = f.pose_seq.and_then(|s| sent_at.get(&s)) else { continue };
+            let Some((_, sent)) = f.pose_seq.and_then(|s| sent_at.get(&s)) else { continue };
             if f.rgba.is_empty() || (f.width, f.height) != (w, h) {
                 continue;
             }
-            let view = View { world_from_camera: Mat4::from_cols_array(&trace.poses[*index]).as_dmat4(), intrinsics };
-            let msg = PoseMessage { seq: 0, t_client_ms: 0.0, world_from_camera: view.world_from_camera.as_mat4(), intrinsics, world_from_anchor: None };
-            let (view, _) = msg.view((w, h)).map_err(|e| anyhow::anyhow!("{e}"))?;
+            // The same validation (and f32 repair) the master applied to this message.
+            let (view, instance) = sent.view((w, h)).map_err(|e| anyhow::anyhow!("{e}"))?;
             let out = prepared.render(&[ViewRequest { view, instance, background }], &settings)?;
             let direct = &out.frames[0];
             let psnr_db = psnr_rgb(&direct.rgba, &f.rgba);

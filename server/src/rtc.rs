@@ -103,6 +103,17 @@ pub fn build_api(cfg: &RtcConfig) -> Result<Arc<API>> {
     ))
 }
 
+/// A local candidate as the `RTCIceCandidateInit` JSON a browser accepts. Bundled: every
+/// candidate belongs to m-line 0; the crate's mid ("") matches no m-line in a browser, so
+/// the mid is left out.
+pub fn candidate_json(init: &RTCIceCandidateInit) -> Value {
+    serde_json::json!({
+        "candidate": init.candidate,
+        "sdpMid": null,
+        "sdpMLineIndex": init.sdp_mline_index.unwrap_or(0),
+    })
+}
+
 /// H.264 constrained baseline 3.1, packetization mode 1, NACK/PLI/FIR.
 pub fn h264_codec() -> RTCRtpCodecParameters {
     let fb = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
@@ -155,14 +166,7 @@ impl WebrtcPeer {
                 let Some(c) = candidate else { return };
                 match c.to_json() {
                     Ok(init) => {
-                        // Bundled: every candidate belongs to m-line 0. The crate's mid ("")
-                        // matches no m-line in a browser, so leave the mid out.
-                        let json = serde_json::json!({
-                            "candidate": init.candidate,
-                            "sdpMid": null,
-                            "sdpMLineIndex": init.sdp_mline_index.unwrap_or(0),
-                        });
-                        let _ = tx.send(PeerEvent::LocalIce(json)).await;
+                        let _ = tx.send(PeerEvent::LocalIce(candidate_json(&init))).await;
                     }
                     Err(e) => tracing::warn!("cannot serialise a local candidate: {e}"),
                 }

@@ -18,7 +18,7 @@
 //! `t_client_ms`), and refusals with a reason.
 
 use glam::{DMat3, DMat4, DQuat, DVec3, Mat4};
-use nephele_renderer::{Instance, Intrinsics, View};
+use nephele_renderer::{Instance, Intrinsics, View, camera::rotation_deviation};
 use serde::{Deserialize, Serialize};
 
 /// Magic and version at the start of every pose message.
@@ -159,7 +159,7 @@ fn anchor_instance(m: DMat4) -> Result<Instance, String> {
         return Err(format!("scale is not uniform ({:.4} {:.4} {:.4})", scales.x, scales.y, scales.z));
     }
     let rot = r * (1.0 / scale);
-    let deviation = (rot.transpose() * rot - DMat3::IDENTITY).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    let deviation = rotation_deviation(&rot);
     if deviation > 1e-3 {
         return Err(format!("not a rotation times a scale (deviation {deviation:.2e})"));
     }
@@ -299,8 +299,7 @@ mod tests {
     fn f32_rounding_of_a_rotation_is_accepted_and_repaired() {
         let p = sample();
         let (view, _) = p.view((64, 48)).unwrap();
-        let r = DMat3::from_mat4(view.world_from_camera);
-        let dev = (r.transpose() * r - DMat3::IDENTITY).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let dev = rotation_deviation(&DMat3::from_mat4(view.world_from_camera));
         assert!(dev < 1e-12, "{dev}");
     }
 }

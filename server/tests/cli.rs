@@ -71,25 +71,6 @@ fn bad_input_is_a_clear_error() {
     }
 }
 
-#[test]
-fn signal_serves_status() {
-    use std::io::{BufRead, BufReader, Read, Write};
-    let mut child = Command::new(env!("CARGO_BIN_EXE_nephele"))
-        .args(["signal", "--listen", "127.0.0.1:0"])
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let addr = line.split("ws://").nth(1).and_then(|s| s.split('/').next()).expect("prints its address").to_string();
-    let mut s = std::net::TcpStream::connect(&addr).unwrap();
-    write!(s, "GET /status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
-    let mut body = String::new();
-    s.read_to_string(&mut body).unwrap();
-    child.kill().ok();
-    assert!(body.starts_with("HTTP/1.1 200") && body.contains("\"masters\":[]"), "{body}");
-}
-
 /// Kills a child process when dropped, so a failing assertion leaves no server behind.
 struct Reap(std::process::Child);
 
@@ -100,21 +81,38 @@ impl Drop for Reap {
     }
 }
 
-#[test]
-fn split_deployment_signal_master_and_replay_of_a_shipped_trace() {
+/// Starts `nephele signal` on a free port; returns it with its `host:port`.
+fn spawn_signal() -> (Reap, String) {
     use std::io::{BufRead, BufReader};
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let asset = root.join("examples/assets/trio-small.nolf");
-    let trace = root.join("examples/traces/shake.json");
-    let mut signal = Command::new(env!("CARGO_BIN_EXE_nephele"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_nephele"))
         .args(["signal", "--listen", "127.0.0.1:0"])
         .stdout(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     let mut line = String::new();
-    BufReader::new(signal.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let _signal = Reap(signal);
-    let url = format!("ws://{}", line.split("ws://").nth(1).and_then(|s| s.split_whitespace().next()).expect("prints its address"));
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.split("ws://").nth(1).and_then(|s| s.split('/').next()).expect("prints its address").to_string();
+    (Reap(child), addr)
+}
+
+#[test]
+fn signal_serves_status() {
+    use std::io::{Read, Write};
+    let (_signal, addr) = spawn_signal();
+    let mut s = std::net::TcpStream::connect(&addr).unwrap();
+    write!(s, "GET /status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
+    let mut body = String::new();
+    s.read_to_string(&mut body).unwrap();
+    assert!(body.starts_with("HTTP/1.1 200") && body.contains("\"masters\":[]"), "{body}");
+}
+
+#[test]
+fn split_deployment_signal_master_and_replay_of_a_shipped_trace() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let asset = root.join("examples/assets/trio-small.nolf");
+    let trace = root.join("examples/traces/shake.json");
+    let (_signal, addr) = spawn_signal();
+    let url = format!("ws://{addr}/signal");
     let scene = format!("trio={}", asset.display());
     let _master = Reap(
         Command::new(env!("CARGO_BIN_EXE_nephele"))

@@ -637,8 +637,7 @@ impl JoinRequest {
 }
 
 fn validate_name(what: &str, name: &str) -> Result<(), SignalError> {
-    let ok_char = |c: char| c.is_ascii_alphanumeric() || c == '_' || c == '-';
-    if name.is_empty() || name.len() > 64 || !name.chars().all(ok_char) {
+    if !crate::protocol::is_valid_name(name) {
         return Err(SignalError::BadRequest(format!(
             "{what} must be 1 to 64 characters of A-Z a-z 0-9 _ -"
         )));

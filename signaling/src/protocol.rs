@@ -15,6 +15,12 @@
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+/// The rule for scene and master names: 1..=64 characters from `[A-Za-z0-9_-]`.
+pub fn is_valid_name(name: &str) -> bool {
+    let ok_char = |c: char| c.is_ascii_alphanumeric() || c == '_' || c == '-';
+    !name.is_empty() && name.len() <= 64 && name.chars().all(ok_char)
+}
+
 /// How the client will display the stream; decides what the master renders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

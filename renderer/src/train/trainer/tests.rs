@@ -1,11 +1,8 @@
 //! Gradient checks of the whole render loss, the sampling rule, determinism, an overfit run
-//! on a synthetic scene (also checked for occupancy), and an ignored speed benchmark.
+//! on a synthetic scene (also checked for occupancy). Training speed is measured by
+//! `nephele train --log-every N` (ms/step, rays/s), not here.
 
-use std::{
-    path::{Path, PathBuf},
-    sync::OnceLock,
-    time::Instant,
-};
+use std::{sync::OnceLock, time::Instant};
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng, rngs::SmallRng};
@@ -234,57 +231,3 @@ fn train_steps_are_deterministic() {
     assert!(a.1 == b.1, "parameters differ between identical runs");
 }
 
-/// Where the NeRF-synthetic lego scene is expected (shared/ beside the repository).
-fn lego_path() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/datasets/lego")
-}
-
-/// Speed of the full preset: `cargo test --release -p nephele-renderer --lib train_bench -- --ignored --nocapture`.
-/// Uses lego (downscaled ×2) when present, else a synthetic scene; `NEPHELE_BENCH_STEPS`
-/// sets the step count (default 300).
-#[test]
-#[ignore]
-fn train_bench_full_preset_speed() {
-    let steps: u64 = std::env::var("NEPHELE_BENCH_STEPS").ok().and_then(|s| s.parse().ok()).unwrap_or(300);
-    let data = if lego_path().join("transforms_train.json").is_file() {
-        Dataset::load(&lego_path(), &LoadOptions { downscale: 2, ..LoadOptions::default() }).unwrap()
-    } else {
-        synthetic_dataset(SynthScene::Mixed, 100, 20)
-    };
-    let mut trainer = Trainer::new(TrainConfig::full());
-    println!(
-        "dataset {} ({} images {}x{}), {} parameters, {} threads",
-        data.name,
-        data.images.len(),
-        data.images[0].width,
-        data.images[0].height,
-        trainer.field.parameter_count(),
-        rayon::current_num_threads()
-    );
-    let start = Instant::now();
-    let mut window = (0.0f64, 0usize, 0usize, 0usize, 0.0f64, 0u64);
-    for _ in 0..steps {
-        let s = trainer.train_step(&data);
-        window.0 += s.total_ms;
-        window.1 += s.batch.rays;
-        window.2 += s.batch.samples;
-        window.3 += s.batch.coloured_samples;
-        window.4 += s.batch.loss;
-        window.5 += 1;
-        if s.step % 25 == 0 || s.step == steps {
-            let (ms, rays, samples, coloured, loss, n) = window;
-            println!(
-                "step {:5}: {:7.1} ms/step, {:8.0} rays/s, {:6.1} samples/ray ({:5.1} coloured), batch PSNR {:5.2} dB, occupied {:5.1} %, {:.0} s",
-                s.step,
-                ms / n as f64,
-                rays as f64 / (ms / 1e3),
-                samples as f64 / rays as f64,
-                coloured as f64 / rays as f64,
-                -10.0 * (loss / n as f64).log10(),
-                100.0 * trainer.occupancy.occupied_fraction(),
-                start.elapsed().as_secs_f64()
-            );
-            window = Default::default();
-        }
-    }
-}
