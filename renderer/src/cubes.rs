@@ -162,6 +162,25 @@ impl TextureCubes {
         Self { bounds, grid, brick, channels, index, values }
     }
 
+    /// The same cubes with only the bricks of `cells` (index-grid coordinates; others and
+    /// cells without a brick are ignored), renumbered in index order.
+    pub fn retain_cells(&self, cells: &[UVec3]) -> Self {
+        let b = self.grid as usize;
+        let mut keep = vec![false; self.index.len()];
+        for c in cells.iter().filter(|c| c.max_element() < self.grid) {
+            keep[self.cell_index(*c)] = true;
+        }
+        let per_brick = self.brick_corners() * self.channels as usize;
+        let mut out = Self { index: vec![-1; b * b * b], values: Vec::new(), ..self.clone() };
+        for (i, &brick) in self.index.iter().enumerate() {
+            if brick >= 0 && keep[i] {
+                out.index[i] = (out.values.len() / per_brick) as i32;
+                out.values.extend_from_slice(&self.values[brick as usize * per_brick..(brick as usize + 1) * per_brick]);
+            }
+        }
+        out
+    }
+
     /// Bytes as stored (index i32 + f16 values).
     pub fn stored_bytes(&self) -> u64 {
         self.index.len() as u64 * 4 + self.values.len() as u64 * 2
@@ -202,6 +221,17 @@ mod tests {
         }
         // Cells with x index 0 (x < -0.5) are empty.
         assert_eq!(cubes.sample::<1>(Vec3::new(-0.8, 0.1, 0.1)), [0.0]);
+    }
+
+    #[test]
+    fn retaining_cells_keeps_their_values() {
+        let cubes = linear_cubes();
+        let kept = cubes.retain_cells(&[UVec3::new(1, 2, 3), UVec3::new(0, 0, 0), UVec3::new(9, 9, 9)]);
+        // (0, 0, 0) had no brick; (9, 9, 9) is outside the grid.
+        assert_eq!(kept.brick_count(), 1);
+        let p = Vec3::new(-0.3, 0.2, 0.7); // in cell (1, 2, 3)
+        assert_eq!(kept.sample::<1>(p), cubes.sample::<1>(p));
+        assert_eq!(kept.sample::<1>(Vec3::new(0.6, 0.6, 0.6)), [0.0]);
     }
 
     #[test]

@@ -176,12 +176,9 @@ impl Dataset {
             return Err(DatasetError::BadOption("max_images must be at least 1".into()));
         }
         check_holdout(holdout_every)?;
-        let (format, file) = locate(path, split)?;
-        if format == Format::NerfSynthetic && holdout_every.is_some() {
-            return Err(DatasetError::BadOption(
-                "holdout_every applies to a single instant-ngp transforms.json; NeRF-synthetic folders have their own splits".into(),
-            ));
-        }
+        // With a holdout, both halves come from the train file (NeRF-synthetic) or the single
+        // transforms.json (instant-ngp).
+        let (format, file) = locate(path, if holdout_every.is_some() { Split::Train } else { split })?;
         let transforms = read_transforms(&file, format)?;
         let mut frames = select_split(transforms.frames, format, split, holdout_every);
         if frames.is_empty() {
@@ -297,7 +294,7 @@ pub fn inspect(path: &Path, holdout_every: Option<usize>) -> Result<DatasetInfo>
     let mut found = None;
     let mut splits = Vec::new();
     for split in Split::ALL {
-        let (format, file) = match locate(path, split) {
+        let (format, file) = match locate(path, if holdout_every.is_some() { Split::Train } else { split }) {
             Ok(located) => located,
             // A NeRF-synthetic folder may lack some of its splits.
             Err(DatasetError::MissingTransforms { .. }) if split != Split::Train || has_split_files(path) => continue,
@@ -305,7 +302,7 @@ pub fn inspect(path: &Path, holdout_every: Option<usize>) -> Result<DatasetInfo>
         };
         let transforms = read_transforms(&file, format)?;
         let frames = select_split(transforms.frames, format, split, holdout_every);
-        if format == Format::InstantNgp && split != Split::Train && frames.is_empty() {
+        if (format == Format::InstantNgp || holdout_every.is_some()) && split != Split::Train && frames.is_empty() {
             continue;
         }
         let first_image_size = frames.first().and_then(|f| png_size(&f.image_path));
@@ -363,10 +360,11 @@ fn has_split_files(dir: &Path) -> bool {
     Split::ALL.iter().any(|s| dir.join(format!("transforms_{s}.json")).is_file())
 }
 
-/// The frames of `split`: all of a NeRF-synthetic split file; for instant-ngp, frames 0, n,
-/// 2n, … are test when holding out every n-th, the rest (or all) train, and val is empty.
+/// The frames of `split`: all of a NeRF-synthetic split file; when holding out every n-th
+/// (either layout, frames of the train file for NeRF-synthetic), frames 0, n, 2n, … are test,
+/// the rest train, and val is empty; without a holdout an instant-ngp file is all train.
 fn select_split(frames: Vec<FrameSpec>, format: Format, split: Split, holdout_every: Option<usize>) -> Vec<FrameSpec> {
-    if format == Format::NerfSynthetic {
+    if format == Format::NerfSynthetic && holdout_every.is_none() {
         return frames;
     }
     let held_out = |i: usize| holdout_every.is_some_and(|n| i.is_multiple_of(n));

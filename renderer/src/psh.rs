@@ -178,21 +178,28 @@ impl SpatialHash {
     /// (object space); absent vertices contribute zero.
     pub fn encode(&self, p: Vec3, out: &mut [f32]) {
         out.fill(0.0);
+        let nf = self.features as usize;
+        for (slot, w) in self.corner_slots(p) {
+            for (o, v) in out.iter_mut().zip(&self.values[slot * nf..(slot + 1) * nf]) {
+                *o += w * v;
+            }
+        }
+    }
+
+    /// Slots and trilinear weights of the stored corners of the cell containing `p`: the
+    /// terms of [`Self::encode`] (and where its gradient goes).
+    #[inline]
+    pub fn corner_slots(&self, p: Vec3) -> impl Iterator<Item = (usize, f32)> + '_ {
         let n = self.grid as f32;
         let g = (p - self.bounds.min) / self.bounds.size() * n;
         let base = g.floor().clamp(Vec3::ZERO, Vec3::splat(n - 1.0));
         let f = (g - base).clamp(Vec3::ZERO, Vec3::ONE);
         let base = base.as_uvec3();
-        let nf = self.features as usize;
-        for corner in 0..8u32 {
+        (0..8u32).filter_map(move |corner| {
             let d = UVec3::new(corner & 1, (corner >> 1) & 1, corner >> 2);
             let w = if d.x == 1 { f.x } else { 1.0 - f.x } * if d.y == 1 { f.y } else { 1.0 - f.y } * if d.z == 1 { f.z } else { 1.0 - f.z };
-            if let Some(slot) = self.find(base + d) {
-                for (o, v) in out.iter_mut().zip(&self.values[slot * nf..(slot + 1) * nf]) {
-                    *o += w * v;
-                }
-            }
-        }
+            self.find(base + d).map(|slot| (slot, w))
+        })
     }
 
     pub fn stored_bytes(&self) -> u64 {

@@ -7,14 +7,19 @@
 //! - [`adam`]: the optimiser;
 //! - [`field`]: hash grid → density MLP → σ, geometry features; + SH view encoding → colour MLP;
 //! - [`occupancy`]: occupancy grid for empty-space skipping;
-//! - [`trainer`]: ray batches, volume rendering and its reverse pass, one optimisation step.
+//! - [`trainer`]: ray batches, volume rendering and its reverse pass, one optimisation step;
+//! - [`distill`]: the i-NOLF stages: density cubes, hit points, PSH, diffuse and specular nets,
+//!   baking into an asset;
+//! - [`variants`]: CPU renderers of the ablation variants the runtime renderer does not serve.
 
 pub mod adam;
+pub mod distill;
 pub mod field;
 pub mod hash_grid;
 pub mod mlp;
 pub mod occupancy;
 pub mod trainer;
+pub mod variants;
 
 pub use field::{Field, FieldConfig};
 pub use hash_grid::{HashGrid, HashGridConfig};

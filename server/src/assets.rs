@@ -1,5 +1,7 @@
-//! Where assets and backends come from: a `.nolf` path or a built-in procedural scene
-//! (`builtin:trio`, `builtin:shiny`, ...), and the backend choice with a loud CPU fallback.
+//! Where assets and backends come from: a `.nolf` path, the embedded demo asset
+//! (`builtin:lego`, trained by `nephele train` from the NeRF-synthetic lego views and compiled
+//! into the binary), or a built-in procedural scene (`builtin:trio`, `builtin:shiny`, ...);
+//! and the backend choice with a loud CPU fallback.
 
 use std::{path::Path, sync::Arc};
 
@@ -10,11 +12,21 @@ use nephele_renderer::{
     procedural::{self, ProceduralConfig, Scene},
 };
 
-/// The scene served when none is named.
-pub const DEFAULT_ASSET: &str = "builtin:trio";
+/// The scene rendered when none is named.
+pub const DEFAULT_ASSET: &str = "builtin:lego";
 
-/// Loads `spec`: `builtin:<scene>[-small]` or a path to a `.nolf` file.
+/// The scenes `nephele serve` offers by default (the first is the default scene).
+pub const DEFAULT_SCENES: [&str; 2] = ["lego=builtin:lego", "trio=builtin:trio"];
+
+/// The demo asset (see `examples/assets/README.md` for how it was made).
+pub const LEGO_NOLF: &[u8] = include_bytes!("../../examples/assets/lego.nolf");
+
+/// Loads `spec`: `builtin:lego`, `builtin:<procedural scene>[-small]` or a path to a `.nolf`
+/// file.
 pub fn load_asset(spec: &str) -> Result<Arc<Asset>> {
+    if spec == "builtin:lego" {
+        return Ok(Arc::new(Asset::from_bytes(LEGO_NOLF).context("the embedded lego asset")?));
+    }
     if let Some(name) = spec.strip_prefix("builtin:") {
         let (name, small) = match name.strip_suffix("-small") {
             Some(n) => (n, true),

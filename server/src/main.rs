@@ -8,7 +8,7 @@ use glam::{DMat4, DVec3};
 use std::sync::Arc;
 
 use nephele::{
-    assets::{BackendChoice, DEFAULT_ASSET, load_asset, make_backend, parse_color, parse_size},
+    assets::{BackendChoice, DEFAULT_ASSET, DEFAULT_SCENES, load_asset, make_backend, parse_color, parse_size},
     bench,
     farm::Farm,
     client::ClientOptions,
@@ -114,22 +114,41 @@ enum Command {
     Train {
         /// NeRF-synthetic folder or instant-ngp transforms.json / folder.
         dataset: PathBuf,
-        /// Output directory (the checkpoint is DIR/ngp.ckpt).
+        /// The asset to write (A.nolf); with `--until ngp`, any path (the work directory).
         #[arg(long)]
         out: PathBuf,
-        /// tiny, fast or default.
+        /// Checkpoints of the stages (default: the asset path with .train).
+        #[arg(long)]
+        work: Option<PathBuf>,
+        /// tiny, fast, default or quality.
         #[arg(long, default_value = "default")]
         preset: String,
-        /// Total i-NGP steps (default: tiny 500, fast 5000, default 20000).
+        /// Steps of the i-NGP stage (default: tiny 500, fast 2000, default 6000, quality 20000).
         #[arg(long)]
         steps: Option<u64>,
+        /// Steps of the i-NOLF appearance stage (default: tiny 300, fast 1000, default 2000,
+        /// quality 6000).
+        #[arg(long)]
+        nolf_steps: Option<u64>,
+        /// Stop after the i-NGP stage, or go on to the asset.
+        #[arg(long, value_enum, default_value = "asset")]
+        until: nephele::train_cli::Until,
+        /// Stop this run when the i-NGP stage reaches step N (checkpointed; continue with
+        /// --resume and the same --steps, which also set the learning-rate schedule).
+        #[arg(long)]
+        stop_at_step: Option<u64>,
         /// Shrink images by 1, 2, 4 or 8.
         #[arg(long, default_value_t = 1)]
         downscale: u32,
-        /// Continue from DIR/ngp.ckpt (same preset and seed).
+        /// Train on all views but every N-th of the train file (eval then uses
+        /// `--split test --holdout-every N`).
+        #[arg(long)]
+        holdout_every: Option<usize>,
+        /// Continue from the work directory's checkpoints (same preset and seed); finished
+        /// stages are skipped.
         #[arg(long)]
         resume: bool,
-        /// Write the checkpoint every N steps (and at the end).
+        /// Write the i-NGP checkpoint every N steps (and at the end).
         #[arg(long, default_value_t = 500)]
         checkpoint_every: u64,
         #[arg(long, default_value_t = 0)]
@@ -140,9 +159,17 @@ enum Command {
         /// Without a terminal (no progress bar), log progress every N steps.
         #[arg(long, default_value_t = 100)]
         log_every: u64,
+        /// Score i-NGP and the asset on up to N held-out views for the asset's provenance.
+        #[arg(long, default_value_t = 10)]
+        eval_views: usize,
+        /// JSON object overriding i-NOLF settings of the preset, e.g.
+        /// '{"psh_grid": 256, "diffuse_dilation": 1}' (an unknown name lists the known ones).
+        #[arg(long)]
+        nolf_config: Option<String>,
     },
-    /// Render every view of a dataset split with a trained checkpoint over white; print
-    /// per-view and mean PSNR / SSIM, optionally write ground truth | render | |error|×4 PNGs.
+    /// Render every view of a dataset split with an asset (.nolf) or an i-NGP checkpoint over
+    /// white; print per-view and mean PSNR / SSIM, optionally write ground truth | render |
+    /// |error|×4 PNGs.
     Eval {
         checkpoint: PathBuf,
         dataset: PathBuf,
@@ -151,6 +178,9 @@ enum Command {
         split: String,
         #[arg(long, default_value_t = 1)]
         downscale: u32,
+        /// Views held out of training with `train --holdout-every N` (the test split).
+        #[arg(long)]
+        holdout_every: Option<usize>,
         /// Directory for the side-by-side PNGs.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -203,6 +233,37 @@ struct ReplayArgs {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// The speed/accuracy table (NEPHELE Table 5) and distance sweep (Fig. 14) from a trained
+    /// i-NGP checkpoint: trains the i-NOLF variants, scores held-out views, times frames.
+    Tradeoff {
+        dataset: PathBuf,
+        /// The teacher: an i-NGP checkpoint (e.g. DIR.train/ngp.ckpt from `nephele train`).
+        #[arg(long)]
+        teacher: PathBuf,
+        #[arg(long, default_value_t = 2)]
+        downscale: u32,
+        /// Held-out views as in `train --holdout-every` (needed without a test split).
+        #[arg(long)]
+        holdout_every: Option<usize>,
+        /// Appearance steps per student.
+        #[arg(long, default_value_t = 2000)]
+        nolf_steps: u64,
+        /// PSH grid sizes (must include 256).
+        #[arg(long, default_value = "128,256,512", value_delimiter = ',')]
+        psh: Vec<u32>,
+        /// Frame size for the timings.
+        #[arg(long, default_value = "800x800")]
+        size: String,
+        /// Held-out views scored.
+        #[arg(long, default_value_t = 10)]
+        views: usize,
+        /// Camera distances in the sweep.
+        #[arg(long, default_value_t = 7)]
+        distances: usize,
+        /// Where the plot and JSON go.
+        #[arg(long, default_value = "tradeoff")]
+        out: PathBuf,
+    },
     /// RGB→I420 and H.264 encode times on a moving test pattern.
     Encode {
         #[arg(long, default_value = "640x480,1280x720")]
@@ -252,7 +313,7 @@ enum BenchCommand {
 struct FarmArgs {
     /// Scenes to serve: `name=asset` or an asset (a .nolf path or builtin:<scene>[-small]);
     /// repeat for several. The first is the default.
-    #[arg(long = "scene", default_value = DEFAULT_ASSET)]
+    #[arg(long = "scene", default_values = DEFAULT_SCENES)]
     scenes: Vec<String>,
     #[arg(long, value_enum, default_value = "auto")]
     backend: BackendChoice,
@@ -411,14 +472,51 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
-        Some(Command::Train { dataset, out, preset, steps, downscale, resume, checkpoint_every, seed, json, log_every }) => {
+        Some(Command::Train {
+            dataset,
+            out,
+            work,
+            preset,
+            steps,
+            nolf_steps,
+            until,
+            stop_at_step,
+            downscale,
+            holdout_every,
+            resume,
+            checkpoint_every,
+            seed,
+            json,
+            log_every,
+            eval_views,
+            nolf_config,
+        }) => {
             use nephele::train_cli::{TrainOptions, train};
-            train(&TrainOptions { dataset, out, preset, steps, downscale, resume, checkpoint_every, seed, json, log_every }).map(|_| ())
+            let opts = TrainOptions {
+                dataset,
+                out,
+                work,
+                preset,
+                steps,
+                nolf_steps,
+                until,
+                stop_at_step,
+                downscale,
+                holdout_every,
+                resume,
+                checkpoint_every,
+                seed,
+                json,
+                log_every,
+                eval_views,
+                nolf_config,
+            };
+            train(&opts).map(|_| ())
         }
-        Some(Command::Eval { checkpoint, dataset, split, downscale, out, json }) => {
+        Some(Command::Eval { checkpoint, dataset, split, downscale, holdout_every, out, json }) => {
             use nephele::train_cli::{EvalOptions, eval};
             let split = split.parse().map_err(anyhow::Error::msg)?;
-            eval(&EvalOptions { checkpoint, dataset, split, downscale, out, json }).map(|_| ())
+            eval(&EvalOptions { checkpoint, dataset, split, downscale, holdout_every, out, json }).map(|_| ())
         }
         Some(Command::Traces { out }) => {
             std::fs::create_dir_all(&out)?;
@@ -432,6 +530,13 @@ fn main() -> Result<()> {
         }
         Some(Command::Bench { what: BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms } }) => {
             bench_stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms)
+        }
+        Some(Command::Bench { what: BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out } }) => {
+            use nephele::tradeoff::{TradeoffOptions, format_report, run};
+            let size = parse_size(&size)?;
+            let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out })?;
+            print!("{}", format_report(&report));
+            Ok(())
         }
         Some(Command::Bench { what: BenchCommand::Encode { sizes, frames } }) => {
             println!("| size | frames | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes |");

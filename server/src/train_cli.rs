@@ -1,6 +1,7 @@
-//! `nephele train` and `nephele eval`: the i-NGP stage of training on a posed-image dataset,
-//! with checkpoints and resume, and evaluation of a checkpoint on a dataset split (PSNR,
-//! SSIM, side-by-side images). The i-NOLF distillation stages come later.
+//! `nephele train` and `nephele eval`: the whole pipeline from a posed-image dataset to a
+//! `.nolf` asset — the i-NGP field (checkpointed, resumable), then the i-NOLF stages of
+//! [`nephele_renderer::train::distill`] — each stage with a progress bar; and evaluation of
+//! an asset or an i-NGP checkpoint on a dataset split (PSNR, SSIM, side-by-side images).
 
 use std::{
     path::{Path, PathBuf},
@@ -13,27 +14,49 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use nephele_renderer::{
+    Asset,
     dataset::{Dataset, LoadOptions, Split},
     train::{
         TrainConfig, Trainer,
+        distill::{self, DistillConfig, Distiller, geometry},
         trainer::eval::{psnr, ssim, write_comparison_png},
     },
 };
 
-/// File name of the i-NGP checkpoint inside the output directory.
+/// File names inside the work directory.
 pub const NGP_CHECKPOINT: &str = "ngp.ckpt";
+pub const STUDENT_CHECKPOINT: &str = "student.ckpt";
+
+/// Where training stops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Until {
+    /// After the i-NGP field (the teacher and baseline).
+    Ngp,
+    /// After the whole pipeline: the `.nolf` asset.
+    Asset,
+}
 
 #[derive(Debug, Clone)]
 pub struct TrainOptions {
     pub dataset: PathBuf,
+    /// The asset to write (`.nolf`).
     pub out: PathBuf,
-    /// tiny, fast or default.
+    /// Checkpoints go here (default: the asset path with `.train` for `.nolf`).
+    pub work: Option<PathBuf>,
+    /// tiny, fast, default or quality.
     pub preset: String,
-    /// Total steps of the i-NGP stage (None: the preset's default).
+    /// Steps of the i-NGP stage (None: the preset's).
     pub steps: Option<u64>,
+    /// Steps of the i-NOLF appearance stage (None: the preset's).
+    pub nolf_steps: Option<u64>,
+    pub until: Until,
+    /// Stop this run once the i-NGP stage reaches this step (continue later with `resume`).
+    pub stop_at_step: Option<u64>,
     pub downscale: u32,
+    /// Hold out every n-th view of the train file (for a test split of our own).
+    pub holdout_every: Option<usize>,
     pub resume: bool,
-    /// Write the checkpoint every this many steps (and at the end).
+    /// Write the i-NGP checkpoint every this many steps (and at the end).
     pub checkpoint_every: u64,
     pub seed: u64,
     /// Print a JSON summary on stdout instead of text.
@@ -41,23 +64,51 @@ pub struct TrainOptions {
     /// When the progress bar is not shown (stderr not a terminal), log a line to stderr
     /// every this many steps (0: never).
     pub log_every: u64,
+    /// Held-out views scored for the asset's provenance (0: none).
+    pub eval_views: usize,
+    /// JSON object overriding fields of the preset's i-NOLF settings
+    /// ([`DistillConfig`]), e.g. `{"psh_grid": 256}`.
+    pub nolf_config: Option<String>,
 }
 
-/// Default step counts per preset.
-pub fn default_steps(preset: &str) -> u64 {
+/// Step counts of a preset: (i-NGP, i-NOLF).
+pub fn default_steps(preset: &str) -> (u64, u64) {
     match preset {
-        "tiny" => 500,
-        "fast" => 5_000,
-        _ => 20_000,
+        "tiny" => (500, 300),
+        "fast" => (2_000, 1_000),
+        "default" => (6_000, 2_000),
+        _ => (20_000, 6_000),
     }
 }
 
+/// The i-NOLF settings of a preset.
+pub fn distill_preset(preset: &str, steps: u64) -> DistillConfig {
+    match preset {
+        "tiny" => DistillConfig::tiny(steps),
+        "quality" => DistillConfig::quality(steps),
+        _ => DistillConfig::default_for(steps),
+    }
+}
+
+/// `base` with the fields of the JSON object `overrides` replaced; unknown fields are errors.
+pub fn override_config(base: &DistillConfig, overrides: &str) -> Result<DistillConfig> {
+    let patch: serde_json::Value = serde_json::from_str(overrides).context("--nolf-config is not JSON")?;
+    let Some(patch) = patch.as_object() else { bail!("--nolf-config should be a JSON object, e.g. {{\"psh_grid\": 256}}") };
+    let mut value = serde_json::to_value(base)?;
+    let fields = value.as_object_mut().expect("a struct serialises to an object");
+    for (key, v) in patch {
+        if !fields.contains_key(key) {
+            bail!("--nolf-config: unknown setting {key:?} (known: {})", fields.keys().cloned().collect::<Vec<_>>().join(", "));
+        }
+        fields.insert(key.clone(), v.clone());
+    }
+    let config: DistillConfig = serde_json::from_value(value).context("--nolf-config: a value has the wrong type")?;
+    config.validate().map_err(anyhow::Error::msg).context("--nolf-config")?;
+    Ok(config)
+}
+
 #[derive(Debug, Clone, Serialize)]
-pub struct TrainSummary {
-    pub stage: &'static str,
-    pub preset: String,
-    pub dataset: String,
-    pub train_images: usize,
+pub struct NgpSummary {
     pub resumed_from_step: Option<u64>,
     pub steps: u64,
     /// Batch loss (MSE) and PSNR of the last step taken in this run (None if none was).
@@ -68,53 +119,204 @@ pub struct TrainSummary {
     pub checkpoint: String,
 }
 
-fn progress_bar(total: u64, start: u64) -> ProgressBar {
+#[derive(Debug, Clone, Serialize)]
+pub struct NolfSummary {
+    pub bounds: [[f32; 3]; 2],
+    pub step: f32,
+    pub density_bricks: usize,
+    pub hit_rays: usize,
+    pub total_rays: usize,
+    /// Rays the ground truth calls opaque (α ≥ ½) that miss the baked density.
+    pub missed_opaque_rays: usize,
+    pub psh_entries: usize,
+    pub geometry_seconds: f64,
+    pub steps: u64,
+    pub resumed: bool,
+    pub final_batch_psnr: Option<f64>,
+    pub train_seconds: f64,
+    pub bake_seconds: f64,
+    pub asset_bytes: u64,
+    pub dense_equivalent_bytes: u64,
+}
+
+/// PSNR / SSIM of the teacher and the asset on held-out views (over white).
+#[derive(Debug, Clone, Serialize)]
+pub struct HeldOut {
+    pub split: String,
+    pub views: usize,
+    pub width: u32,
+    pub height: u32,
+    pub ngp_psnr: f64,
+    pub ngp_ssim: f64,
+    pub nolf_psnr: f64,
+    pub nolf_ssim: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainSummary {
+    pub preset: String,
+    pub dataset: String,
+    pub train_images: usize,
+    pub ngp: NgpSummary,
+    pub nolf: Option<NolfSummary>,
+    pub held_out: Option<HeldOut>,
+    pub asset: Option<String>,
+    pub seconds: f64,
+}
+
+fn bar_style(template: &str) -> ProgressStyle {
+    ProgressStyle::with_template(template).map(|s| s.progress_chars("=> ")).unwrap_or_else(|_| ProgressStyle::default_bar())
+}
+
+fn progress_bar(prefix: &'static str, total: u64, start: u64) -> ProgressBar {
     let bar = ProgressBar::new(total);
-    bar.set_style(
-        ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} (ETA {eta})")
-            .map(|s| s.progress_chars("=> "))
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    bar.set_prefix("ngp");
+    bar.set_style(bar_style("{prefix} [{bar:30}] {pos}/{len} {msg} (ETA {eta})"));
+    bar.set_prefix(prefix);
     bar.set_position(start);
     bar.reset_eta();
     bar
+}
+
+fn spinner(prefix: &'static str, msg: &str) -> ProgressBar {
+    let bar = ProgressBar::new_spinner();
+    bar.set_style(ProgressStyle::with_template("{prefix} {spinner} {msg} ({elapsed})").unwrap_or_else(|_| ProgressStyle::default_spinner()));
+    bar.set_prefix(prefix);
+    bar.set_message(msg.to_string());
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar
+}
+
+/// The work directory of a run.
+pub fn work_dir(opts: &TrainOptions) -> PathBuf {
+    opts.work.clone().unwrap_or_else(|| if opts.out.extension().is_some_and(|e| e == "nolf") { opts.out.with_extension("train") } else { opts.out.clone() })
 }
 
 pub fn train(opts: &TrainOptions) -> Result<TrainSummary> {
     let Some(mut config) = TrainConfig::preset(&opts.preset) else {
         bail!("unknown preset {:?} (use one of: {})", opts.preset, TrainConfig::PRESETS.join(", "));
     };
+    if opts.until == Until::Asset && opts.out.extension().is_none_or(|e| e != "nolf") {
+        bail!("--out {} should name the asset to write, ending in .nolf (or pass --until ngp)", opts.out.display());
+    }
     config.seed = opts.seed;
-    let steps = opts.steps.unwrap_or_else(|| default_steps(&opts.preset));
+    let (ngp_default, nolf_default) = default_steps(&opts.preset);
+    let steps = opts.steps.unwrap_or(ngp_default);
+    // Step decay over the last 40% of the run: ×⅓ at 60%, ×⅒ at 85%.
+    config.learning_rate_schedule = vec![(steps * 6 / 10, 1.0 / 3.0), (steps * 85 / 100, 0.1)];
     if opts.checkpoint_every == 0 {
         bail!("--checkpoint-every must be at least 1");
     }
-    let load = LoadOptions { split: Split::Train, downscale: opts.downscale, ..LoadOptions::default() };
+    let mut distill = distill_preset(&opts.preset, opts.nolf_steps.unwrap_or(nolf_default));
+    distill.seed = opts.seed;
+    if let Some(json) = &opts.nolf_config {
+        distill = override_config(&distill, json)?;
+    }
+    distill.validate().map_err(anyhow::Error::msg)?;
+    let started = Instant::now();
+    let load = LoadOptions { split: Split::Train, downscale: opts.downscale, holdout_every: opts.holdout_every, ..LoadOptions::default() };
     let t = Instant::now();
     let data = Dataset::load(&opts.dataset, &load).with_context(|| format!("loading the train split of {}", opts.dataset.display()))?;
     let (w, h) = data.images.first().map(|i| (i.width, i.height)).unwrap_or((0, 0));
     eprintln!("dataset {}: {} train images of {w}x{h} (downscale {}) in {:.1} s", data.name, data.images.len(), opts.downscale, t.elapsed().as_secs_f64());
-    std::fs::create_dir_all(&opts.out).with_context(|| format!("creating output directory {}", opts.out.display()))?;
-    let ckpt = opts.out.join(NGP_CHECKPOINT);
-
-    let mut trainer = if opts.resume {
-        if !ckpt.exists() {
-            bail!("--resume: no checkpoint at {}", ckpt.display());
-        }
-        let (trainer, _) = Trainer::load_checkpoint(&ckpt, Some(&config)).with_context(|| format!("resuming from {}", ckpt.display()))?;
-        eprintln!("resuming from {} at step {}", ckpt.display(), trainer.step);
-        trainer
-    } else {
-        Trainer::new(config)
-    };
-    let resumed_from_step = opts.resume.then_some(trainer.step);
+    let work = work_dir(opts);
+    std::fs::create_dir_all(&work).with_context(|| format!("creating work directory {}", work.display()))?;
     let provenance = serde_json::json!({
         "dataset": opts.dataset.display().to_string(),
         "dataset_name": data.name,
         "downscale": opts.downscale,
         "preset": opts.preset,
+        "holdout_every": opts.holdout_every,
+        "seed": opts.seed,
     });
+    let (teacher, ngp) = train_ngp(opts, config, steps, &data, &work, &provenance)?;
+    let stopped_early = teacher.step < steps;
+    let mut summary = TrainSummary {
+        preset: opts.preset.clone(),
+        dataset: opts.dataset.display().to_string(),
+        train_images: data.images.len(),
+        ngp,
+        nolf: None,
+        held_out: None,
+        asset: None,
+        seconds: 0.0,
+    };
+    if stopped_early {
+        eprintln!("stopped at step {} of {steps} as asked; continue with --resume", teacher.step);
+    } else if opts.until == Until::Asset {
+        let (asset, nolf) = train_nolf(opts, &teacher, distill.clone(), &data, &work)?;
+        let held_out = if opts.eval_views > 0 { held_out_scores(opts, &teacher, &asset)? } else { None };
+        let mut asset = asset;
+        summary.seconds = started.elapsed().as_secs_f64();
+        asset.provenance = serde_json::json!({
+            "generator": "nephele train",
+            "created_unix_s": std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0),
+            "source": provenance,
+            "ngp": { "config": teacher.config, "summary": summary.ngp },
+            "nolf": { "config": distill, "summary": nolf },
+            "held_out": held_out,
+            "training_seconds": summary.seconds,
+        });
+        asset.save(&opts.out).with_context(|| format!("writing {}", opts.out.display()))?;
+        summary.nolf = Some(nolf);
+        summary.held_out = held_out;
+        summary.asset = Some(opts.out.display().to_string());
+    }
+    summary.seconds = started.elapsed().as_secs_f64();
+    if opts.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print!("{}", format_summary(&summary));
+    }
+    Ok(summary)
+}
+
+fn format_summary(s: &TrainSummary) -> String {
+    let n = &s.ngp;
+    let mut out = match (n.final_loss, n.final_batch_psnr) {
+        (Some(loss), Some(p)) => format!(
+            "ngp: step {} in {:.1} s ({:.1} ms/step); final loss {loss:.6} (batch PSNR {p:.2} dB); checkpoint {}\n",
+            n.steps, n.seconds, n.ms_per_step, n.checkpoint
+        ),
+        _ => format!("ngp: already at step {}; checkpoint {}\n", n.steps, n.checkpoint),
+    };
+    if let Some(v) = &s.nolf {
+        out += &format!(
+            "nolf: {} density bricks, {} of {} rays hit ({} opaque rays missed), {} PSH entries; {} steps{}; batch PSNR {}\n",
+            v.density_bricks,
+            v.hit_rays,
+            v.total_rays,
+            v.missed_opaque_rays,
+            v.psh_entries,
+            v.steps,
+            if v.resumed { " (resumed)" } else { "" },
+            v.final_batch_psnr.map_or("-".into(), |p| format!("{p:.2} dB"))
+        );
+        out += &format!("asset: {} bytes ({:.1}% of dense grids of the same resolution)\n", v.asset_bytes, 100.0 * v.asset_bytes as f64 / v.dense_equivalent_bytes.max(1) as f64);
+    }
+    if let Some(h) = &s.held_out {
+        out += &format!(
+            "held out ({} views of {}x{}, {} split, over white): i-NGP {:.2} dB / SSIM {:.4}; i-NOLF {:.2} dB / SSIM {:.4}\n",
+            h.views, h.width, h.height, h.split, h.ngp_psnr, h.ngp_ssim, h.nolf_psnr, h.nolf_ssim
+        );
+    }
+    if let Some(a) = &s.asset {
+        out += &format!("wrote {a} ({:.1} s in all)\n", s.seconds);
+    }
+    out
+}
+
+fn train_ngp(opts: &TrainOptions, config: TrainConfig, steps: u64, data: &Dataset, work: &Path, provenance: &serde_json::Value) -> Result<(Trainer, NgpSummary)> {
+    let ckpt = work.join(NGP_CHECKPOINT);
+    let mut trainer = if opts.resume && ckpt.exists() {
+        let (trainer, _) = Trainer::load_checkpoint(&ckpt, Some(&config)).with_context(|| format!("resuming from {}", ckpt.display()))?;
+        eprintln!("resuming from {} at step {}", ckpt.display(), trainer.step);
+        trainer
+    } else if opts.resume {
+        bail!("--resume: no checkpoint at {}", ckpt.display());
+    } else {
+        Trainer::new(config)
+    };
+    let resumed_from_step = opts.resume.then_some(trainer.step);
     eprintln!(
         "stage ngp: preset {}, {} parameters, {} rays per batch, steps {}..{steps}",
         opts.preset,
@@ -122,16 +324,16 @@ pub fn train(opts: &TrainOptions) -> Result<TrainSummary> {
         trainer.config.rays_per_batch,
         trainer.step
     );
-
     let start_step = trainer.step;
-    let bar = progress_bar(steps, start_step.min(steps));
+    let bar = progress_bar("ngp", steps, start_step.min(steps));
+    let stop_at = opts.stop_at_step.unwrap_or(steps).min(steps);
     let t = Instant::now();
     let mut last = None;
     let mut window = (Instant::now(), 0usize);
     // (start of the log interval, step then, rays since)
     let mut log = (Instant::now(), start_step, 0usize);
-    while trainer.step < steps {
-        let s = trainer.train_step(&data);
+    while trainer.step < stop_at {
+        let s = trainer.train_step(data);
         window.1 += s.batch.rays;
         log.2 += s.batch.rays;
         last = Some(s);
@@ -157,22 +359,18 @@ pub fn train(opts: &TrainOptions) -> Result<TrainSummary> {
             );
             log = (Instant::now(), trainer.step, 0);
         }
-        if trainer.step % opts.checkpoint_every == 0 || trainer.step == steps {
+        if trainer.step % opts.checkpoint_every == 0 || trainer.step == stop_at {
             trainer.save_checkpoint(&ckpt, provenance.clone())?;
         }
     }
     bar.finish_and_clear();
     if trainer.step == start_step {
         // Nothing to do, but make sure the checkpoint exists.
-        trainer.save_checkpoint(&ckpt, provenance)?;
+        trainer.save_checkpoint(&ckpt, provenance.clone())?;
     }
     let seconds = t.elapsed().as_secs_f64();
     let taken = trainer.step - start_step;
-    let summary = TrainSummary {
-        stage: "ngp",
-        preset: opts.preset.clone(),
-        dataset: opts.dataset.display().to_string(),
-        train_images: data.images.len(),
+    let summary = NgpSummary {
         resumed_from_step,
         steps: trainer.step,
         final_loss: last.map(|s| s.batch.loss),
@@ -181,19 +379,131 @@ pub fn train(opts: &TrainOptions) -> Result<TrainSummary> {
         ms_per_step: if taken > 0 { seconds * 1e3 / taken as f64 } else { 0.0 },
         checkpoint: ckpt.display().to_string(),
     };
-    eprintln!("the i-NOLF stages (distillation into a .nolf asset) are not implemented yet; stopping after the i-NGP stage");
-    if opts.json {
-        println!("{}", serde_json::to_string_pretty(&summary)?);
-    } else {
-        match (summary.final_loss, summary.final_batch_psnr) {
-            (Some(loss), Some(p)) => println!(
-                "ngp: {taken} steps to step {} in {seconds:.1} s ({:.1} ms/step); final loss {loss} (batch PSNR {p:.2} dB); wrote {}",
-                summary.steps, summary.ms_per_step, summary.checkpoint
-            ),
-            _ => println!("ngp: already at step {} (asked for {steps}); checkpoint {}", summary.steps, summary.checkpoint),
-        }
+    Ok((trainer, summary))
+}
+
+/// Stages 2–4: geometry, appearance nets (or their checkpoint when resuming), bake.
+fn train_nolf(opts: &TrainOptions, teacher: &Trainer, cfg: DistillConfig, data: &Dataset, work: &Path) -> Result<(Asset, NolfSummary)> {
+    let t = Instant::now();
+    let bar = spinner("nolf", "baking density cubes from the field and marching every training ray");
+    let geometry = geometry(teacher, data, &cfg).map_err(anyhow::Error::msg)?;
+    bar.finish_and_clear();
+    let geometry_seconds = t.elapsed().as_secs_f64();
+    let hits = &geometry.hits;
+    let (bounds, step, density) = (geometry.bounds, geometry.step, geometry.density.clone());
+    eprintln!(
+        "stage nolf geometry: box {:.3?}..{:.3?}, step {step:.5}, {} density bricks, {} of {} rays hit ({} opaque rays missed), {} PSH vertices, {geometry_seconds:.1} s",
+        bounds.min.to_array(),
+        bounds.max.to_array(),
+        density.brick_count(),
+        hits.rays.len(),
+        hits.total_rays,
+        hits.missed_opaque,
+        geometry.psh_vertices.len()
+    );
+    let (density_bricks, hit_rays, total_rays, missed) = (density.brick_count(), hits.rays.len(), hits.total_rays, hits.missed_opaque);
+    let steps = cfg.steps;
+    let mut distiller = Distiller::new(geometry, cfg).context("building the perfect spatial hash")?;
+    let ckpt = work.join(STUDENT_CHECKPOINT);
+    let t = Instant::now();
+    let mut resumed = false;
+    let mut last = None;
+    if opts.resume && ckpt.exists() {
+        let bytes = std::fs::read(&ckpt).with_context(|| format!("reading {}", ckpt.display()))?;
+        distiller.load_student(&bytes, teacher.step).map_err(anyhow::Error::msg).with_context(|| format!("resuming from {}", ckpt.display()))?;
+        resumed = true;
+        eprintln!("stage nolf: resumed the finished appearance nets from {}", ckpt.display());
     }
-    Ok(summary)
+    if distiller.step < steps {
+        eprintln!("stage nolf appearance: {} steps of {} rays", steps, distiller.config.rays_per_batch);
+        let bar = progress_bar("nolf", steps, distiller.step);
+        let mut log = Instant::now();
+        while distiller.step < steps {
+            let s = distiller.train_step(data);
+            last = Some(s);
+            bar.set_position(distiller.step);
+            bar.set_message(format!("loss {:.5} PSNR {:.2} dB α-MSE {:.5}", s.rgb_mse, s.psnr(), s.alpha_mse));
+            if bar.is_hidden() && opts.log_every > 0 && (distiller.step % opts.log_every == 0 || distiller.step == steps) {
+                eprintln!(
+                    "nolf step {}/{steps}: batch PSNR {:.2} dB, alpha MSE {:.5}, {:.0} ms/step, {:.0} s elapsed",
+                    distiller.step,
+                    s.psnr(),
+                    s.alpha_mse,
+                    log.elapsed().as_secs_f64() * 1e3 / opts.log_every as f64,
+                    t.elapsed().as_secs_f64()
+                );
+                log = Instant::now();
+            }
+        }
+        bar.finish_and_clear();
+        let bytes = distiller.student_bytes(teacher.step).map_err(anyhow::Error::msg)?;
+        let mut tmp = ckpt.clone().into_os_string();
+        tmp.push(".partial");
+        std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, &ckpt)).with_context(|| format!("writing {}", ckpt.display()))?;
+    }
+    let train_seconds = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let bar = spinner("bake", "baking diffuse cubes");
+    let asset = distiller.bake(density, step, &data.name, serde_json::Value::Null);
+    asset.validate().context("the baked asset fails its own checks")?;
+    bar.finish_and_clear();
+    let psh_entries = asset.psh.len();
+    let asset_bytes = asset.density.stored_bytes() + asset.diffuse.stored_bytes() + asset.psh.stored_bytes();
+    let dense_equivalent_bytes = asset.density.dense_bytes() + asset.diffuse.dense_bytes() + asset.psh.dense_bytes();
+    let summary = NolfSummary {
+        bounds: [bounds.min.to_array(), bounds.max.to_array()],
+        step,
+        density_bricks,
+        hit_rays,
+        total_rays,
+        missed_opaque_rays: missed,
+        psh_entries,
+        geometry_seconds,
+        steps: distiller.step,
+        resumed,
+        final_batch_psnr: last.map(|s| s.psnr()),
+        train_seconds,
+        bake_seconds: t.elapsed().as_secs_f64(),
+        asset_bytes,
+        dense_equivalent_bytes,
+    };
+    Ok((asset, summary))
+}
+
+/// Scores the teacher and the asset on up to `eval_views` views of the test split (the
+/// held-out views with `--holdout-every`, else the dataset's own test split), if there is one.
+fn held_out_scores(opts: &TrainOptions, teacher: &Trainer, asset: &Asset) -> Result<Option<HeldOut>> {
+    let load = LoadOptions { split: Split::Test, downscale: opts.downscale, holdout_every: opts.holdout_every, max_images: Some(opts.eval_views) };
+    let Ok(test) = Dataset::load(&opts.dataset, &load) else {
+        eprintln!("no test split to score (use --holdout-every N to hold views out)");
+        return Ok(None);
+    };
+    let bar = progress_bar("eval", test.images.len() as u64, 0);
+    let (mut np, mut ns, mut ap, mut as_) = (0.0, 0.0, 0.0, 0.0);
+    for image in &test.images {
+        let truth = image.composite_over(Vec3::ONE);
+        let (w, h) = (image.width as usize, image.height as usize);
+        let ngp = teacher.render_image(image, Vec3::ONE);
+        let nolf = distill::render_image(asset, image, Vec3::ONE);
+        np += psnr(&truth, &ngp);
+        ns += ssim(&truth, &ngp, w, h, 3);
+        ap += psnr(&truth, &nolf);
+        as_ += ssim(&truth, &nolf, w, h, 3);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let n = test.images.len().max(1) as f64;
+    let (w, h) = test.images.first().map_or((0, 0), |i| (i.width, i.height));
+    Ok(Some(HeldOut {
+        split: if opts.holdout_every.is_some() { "held out of train".into() } else { "test".into() },
+        views: test.images.len(),
+        width: w,
+        height: h,
+        ngp_psnr: np / n,
+        ngp_ssim: ns / n,
+        nolf_psnr: ap / n,
+        nolf_ssim: as_ / n,
+    }))
 }
 
 #[derive(Debug, Clone)]
@@ -202,6 +512,7 @@ pub struct EvalOptions {
     pub dataset: PathBuf,
     pub split: Split,
     pub downscale: u32,
+    pub holdout_every: Option<usize>,
     pub out: Option<PathBuf>,
     pub json: bool,
 }
@@ -219,7 +530,9 @@ pub struct ViewScore {
 #[derive(Debug, Clone, Serialize)]
 pub struct EvalReport {
     pub checkpoint: String,
-    pub step: u64,
+    pub model: &'static str,
+    /// Training step of a checkpoint.
+    pub step: Option<u64>,
     pub dataset: String,
     pub split: String,
     pub width: u32,
@@ -232,9 +545,21 @@ pub struct EvalReport {
     pub seconds: f64,
 }
 
+/// What `eval` renders with.
+enum Model {
+    Ngp(Box<Trainer>),
+    Nolf(Asset),
+}
+
 pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
-    let (trainer, meta) = Trainer::load_checkpoint(&opts.checkpoint, None).with_context(|| format!("loading checkpoint {}", opts.checkpoint.display()))?;
-    let load = LoadOptions { split: opts.split, downscale: opts.downscale, ..LoadOptions::default() };
+    let path = &opts.checkpoint;
+    let (model, step) = if path.extension().is_some_and(|e| e == "nolf") {
+        (Model::Nolf(Asset::load(path).with_context(|| format!("loading asset {}", path.display()))?), None)
+    } else {
+        let (trainer, meta) = Trainer::load_checkpoint(path, None).with_context(|| format!("loading checkpoint {}", path.display()))?;
+        (Model::Ngp(Box::new(trainer)), Some(meta.step))
+    };
+    let load = LoadOptions { split: opts.split, downscale: opts.downscale, holdout_every: opts.holdout_every, ..LoadOptions::default() };
     let data = Dataset::load(&opts.dataset, &load).with_context(|| format!("loading the {} split of {}", opts.split, opts.dataset.display()))?;
     if let Some(dir) = &opts.out {
         std::fs::create_dir_all(dir).with_context(|| format!("creating output directory {}", dir.display()))?;
@@ -247,7 +572,10 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
     bar.enable_steady_tick(Duration::from_millis(200));
     let mut views = Vec::with_capacity(data.images.len());
     for (index, image) in data.images.iter().enumerate() {
-        let render = trainer.render_image(image, background);
+        let render = match &model {
+            Model::Ngp(trainer) => trainer.render_image(image, background),
+            Model::Nolf(asset) => distill::render_image(asset, image, background),
+        };
         let truth = image.composite_over(background);
         let comparison = match &opts.out {
             Some(dir) => {
@@ -271,7 +599,11 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
     let (w, h) = data.images.first().map(|i| (i.width, i.height)).unwrap_or((0, 0));
     let report = EvalReport {
         checkpoint: opts.checkpoint.display().to_string(),
-        step: meta.step,
+        model: match model {
+            Model::Ngp(_) => "i-NGP checkpoint",
+            Model::Nolf(_) => "i-NOLF asset",
+        },
+        step,
         dataset: opts.dataset.display().to_string(),
         split: opts.split.to_string(),
         width: w,
@@ -294,8 +626,14 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
 /// The text form of an evaluation: one row per view, then the means.
 pub fn format_report(r: &EvalReport) -> String {
     let mut s = format!(
-        "checkpoint {} (step {}) on the {} split of {} ({}x{}, over white)\n| view | PSNR dB | SSIM | image |\n|---:|---:|---:|---|\n",
-        r.checkpoint, r.step, r.split, r.dataset, r.width, r.height
+        "{} {}{} on the {} split of {} ({}x{}, over white)\n| view | PSNR dB | SSIM | image |\n|---:|---:|---:|---|\n",
+        r.model,
+        r.checkpoint,
+        r.step.map_or(String::new(), |s| format!(" (step {s})")),
+        r.split,
+        r.dataset,
+        r.width,
+        r.height
     );
     for v in &r.views {
         let name = Path::new(&v.image).file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();

@@ -517,11 +517,19 @@ fn bad_options_are_refused() {
         LoadOptions { downscale: 3, ..LoadOptions::default() },
         LoadOptions { downscale: 0, ..LoadOptions::default() },
         LoadOptions { max_images: Some(0), ..LoadOptions::default() },
-        LoadOptions { holdout_every: Some(8), ..LoadOptions::default() },
     ] {
         assert!(matches!(Dataset::load(&dir.0, &options), Err(DatasetError::BadOption(_))), "{options:?}");
     }
     assert_eq!("val".parse::<Split>(), Ok(Split::Val));
+
+    // A holdout splits a NeRF-synthetic train file into train and held-out test views.
+    let all = Dataset::load(&dir.0, &LoadOptions::default()).unwrap();
+    let holdout = |split| Dataset::load(&dir.0, &LoadOptions { holdout_every: Some(3), ..LoadOptions::split(split) }).unwrap();
+    let (train, test) = (holdout(Split::Train), holdout(Split::Test));
+    assert_eq!(train.images.len() + test.images.len(), all.images.len());
+    assert_eq!(test.images[0].path, all.images[0].path);
+    assert_eq!(train.images[0].path, all.images[1].path);
+    assert!(Dataset::load(&dir.0, &LoadOptions { holdout_every: Some(3), ..LoadOptions::split(Split::Val) }).is_err());
     assert!("validation".parse::<Split>().is_err());
 }
 

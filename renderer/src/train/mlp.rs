@@ -210,6 +210,59 @@ const TILE_COLS: usize = 8;
 
 /// `c += a·b` with `a` = `rows × k`, `b` = `k × n`, `c` = `rows × n`, all row-major.
 pub fn gemm(a: &[f32], b: &[f32], c: &mut [f32], k: usize, n: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if wide::available() {
+        return wide::gemm(a, b, c, k, n);
+    }
+    gemm_body(a, b, c, k, n)
+}
+
+/// `c += aᵀ·b` with `a` = `rows × m`, `b` = `rows × n`, `c` = `m × n`, all row-major
+/// (the weight gradient `δᵀ·X`).
+pub fn gemm_tn(a: &[f32], b: &[f32], c: &mut [f32], rows: usize, m: usize, n: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if wide::available() {
+        return wide::gemm_tn(a, b, c, rows, m, n);
+    }
+    gemm_tn_body(a, b, c, rows, m, n)
+}
+
+/// The same kernels compiled for 256-bit AVX2 vectors, chosen at run time on CPUs that have
+/// them (the release build targets baseline x86-64, i.e. 128-bit SSE2). Rust never contracts
+/// `a * b + c` into a fused multiply-add, so both versions do the same f32 operations in the
+/// same order per output element and give bit-identical results; only the vector width differs.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod wide {
+    pub fn available() -> bool {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn gemm_avx2(a: &[f32], b: &[f32], c: &mut [f32], k: usize, n: usize) {
+        super::gemm_body(a, b, c, k, n)
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn gemm_tn_avx2(a: &[f32], b: &[f32], c: &mut [f32], rows: usize, m: usize, n: usize) {
+        super::gemm_tn_body(a, b, c, rows, m, n)
+    }
+
+    pub fn gemm(a: &[f32], b: &[f32], c: &mut [f32], k: usize, n: usize) {
+        assert!(available());
+        // SAFETY: the CPU supports AVX2 (checked just above); the function is otherwise safe.
+        unsafe { gemm_avx2(a, b, c, k, n) }
+    }
+
+    pub fn gemm_tn(a: &[f32], b: &[f32], c: &mut [f32], rows: usize, m: usize, n: usize) {
+        assert!(available());
+        // SAFETY: as in `gemm`.
+        unsafe { gemm_tn_avx2(a, b, c, rows, m, n) }
+    }
+}
+
+#[inline(always)]
+fn gemm_body(a: &[f32], b: &[f32], c: &mut [f32], k: usize, n: usize) {
     let rows = c.len() / n.max(1);
     assert!(a.len() == rows * k && b.len() == k * n && c.len() == rows * n);
     let full_cols = n - n % TILE_COLS;
@@ -255,9 +308,8 @@ pub fn gemm(a: &[f32], b: &[f32], c: &mut [f32], k: usize, n: usize) {
     }
 }
 
-/// `c += aᵀ·b` with `a` = `rows × m`, `b` = `rows × n`, `c` = `m × n`, all row-major
-/// (the weight gradient `δᵀ·X`).
-pub fn gemm_tn(a: &[f32], b: &[f32], c: &mut [f32], rows: usize, m: usize, n: usize) {
+#[inline(always)]
+fn gemm_tn_body(a: &[f32], b: &[f32], c: &mut [f32], rows: usize, m: usize, n: usize) {
     assert!(a.len() == rows * m && b.len() == rows * n && c.len() == m * n);
     let full_m = m - m % TILE_ROWS;
     let full_n = n - n % TILE_COLS;
@@ -413,6 +465,14 @@ mod tests {
             let want: Vec<f32> = (0..k * n).map(|i| 0.5 + (0..rows).map(|r| a[r * k + i / n] * b2[r * n + i % n]).sum::<f32>()).collect();
             gemm_tn(&a, &b2, &mut c2, rows, k, n);
             assert!(c2.iter().zip(&want).all(|(x, y)| (x - y).abs() < 1e-4), "gemm_tn {rows}x{k}x{n}");
+            // The run-time-chosen wide kernels equal the baseline ones bit for bit.
+            let (mut plain, mut plain_tn) = (vec![0.25f32; rows * n], vec![0.25f32; k * n]);
+            let (mut chosen, mut chosen_tn) = (plain.clone(), plain_tn.clone());
+            gemm_body(&a, &b, &mut plain, k, n);
+            gemm(&a, &b, &mut chosen, k, n);
+            gemm_tn_body(&a, &b2, &mut plain_tn, rows, k, n);
+            gemm_tn(&a, &b2, &mut chosen_tn, rows, k, n);
+            assert_eq!((plain, plain_tn), (chosen, chosen_tn), "{rows}x{k}x{n}");
         }
     }
 

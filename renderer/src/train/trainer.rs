@@ -68,6 +68,9 @@ pub struct TrainConfig {
     pub l2_mlp_weights: f32,
     pub occupancy: OccupancyConfig,
     pub seed: u64,
+    /// Learning-rate multipliers: `(from step, factor)`, ascending; 1 before the first.
+    #[serde(default)]
+    pub learning_rate_schedule: Vec<(u64, f32)>,
 }
 
 impl TrainConfig {
@@ -98,6 +101,7 @@ impl TrainConfig {
                 min_optical_thickness: 0.01,
             },
             seed: 0,
+            learning_rate_schedule: Vec::new(),
         }
     }
 
@@ -137,14 +141,14 @@ impl TrainConfig {
     }
 
     /// Names accepted by [`Self::preset`].
-    pub const PRESETS: [&'static str; 3] = ["tiny", "fast", "default"];
+    pub const PRESETS: [&'static str; 4] = ["tiny", "fast", "default", "quality"];
 
-    /// `tiny`, `fast` or `default` (= [`Self::full`]).
+    /// `tiny`, `fast`, or `default` and `quality` (both [`Self::full`]; they differ in steps).
     pub fn preset(name: &str) -> Option<Self> {
         match name {
             "tiny" => Some(Self::tiny()),
             "fast" => Some(Self::fast()),
-            "default" | "full" => Some(Self::full()),
+            "default" | "quality" | "full" => Some(Self::full()),
             _ => None,
         }
     }
@@ -173,7 +177,7 @@ impl TrainConfig {
             .iter()
             .chain(&[self.occupancy.decay, self.occupancy.fraction_per_update, self.occupancy.min_optical_thickness])
             .all(|v| v.is_finite());
-        if !finite {
+        if !finite || !self.learning_rate_schedule.iter().all(|(_, f)| f.is_finite() && *f > 0.0) {
             return Err("non-finite optimiser or occupancy setting".into());
         }
         Ok(())
@@ -473,9 +477,19 @@ impl Trainer {
         self.occupancy.update(&cells, &sigma, cfg.decay, threshold);
     }
 
+    /// The learning rate of the next step.
+    pub fn learning_rate(&self) -> f32 {
+        let factor = self.config.learning_rate_schedule.iter().rev().find(|(from, _)| self.step >= *from).map_or(1.0, |(_, f)| *f);
+        self.config.adam.learning_rate * factor
+    }
+
     /// One optimisation step on a random batch of `data`.
     pub fn train_step(&mut self, data: &Dataset) -> StepStats {
         let start = Instant::now();
+        let lr = self.learning_rate();
+        for adam in [&mut self.adam_grid, &mut self.adam_density, &mut self.adam_colour] {
+            adam.config.learning_rate = lr;
+        }
         let cfg = self.config.occupancy;
         let since_warmup = self.step.checked_sub(cfg.warmup_steps as u64);
         if let Some(k) = since_warmup.filter(|k| k % cfg.update_every.max(1) as u64 == 0) {

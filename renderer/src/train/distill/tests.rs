@@ -1,0 +1,197 @@
+//! Gradient check of the student loss, and the whole pipeline on a synthetic scene: teacher →
+//! geometry → student → baked asset, scored on held-out views against the teacher.
+
+use std::sync::OnceLock;
+
+use glam::Vec3;
+use rand::{Rng, SeedableRng, rngs::SmallRng};
+
+use super::*;
+use crate::{
+    dataset::{Dataset, LoadOptions, Split},
+    synth::{self, SynthConfig, SynthScene},
+    test_util::TempDir,
+    train::{TrainConfig, trainer::eval::psnr},
+};
+
+fn unit(rng: &mut SmallRng) -> Vec3 {
+    Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
+}
+
+/// A student over [-1, 1]³ with a PSH on the vertices of a random cloud of points.
+fn small_student(rng: &mut SmallRng) -> (Student, Vec<StudentRay>) {
+    let bounds = Aabb::cube(1.0);
+    let mut cfg = DistillConfig::tiny(10);
+    cfg.diffuse_encoding = HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, finest_resolution: 32 };
+    cfg.psh_grid = 16;
+    let points: Vec<Vec3> = (0..24).map(|_| 0.9 * unit(rng)).collect();
+    let vertices = marked_cells(&bounds, cfg.psh_grid, 1, points.iter().copied(), 0);
+    let psh = SpatialHash::build(bounds, cfg.psh_grid, cfg.psh_features, &vertices, |_, o| o.fill(0.0), 3).unwrap();
+    let mut student = Student::new(bounds, psh, &cfg, rng);
+    // Sizeable features everywhere, so every group matters to the loss.
+    student.diffuse_grid.params.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
+    student.psh.values.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
+    let rays = points
+        .iter()
+        .map(|&p| StudentRay {
+            p_hit: p + 0.02 * unit(rng),
+            dir: unit(rng).normalize(),
+            alpha_c: rng.random_range(0.1..1.0),
+            rgb: (unit(rng) + 1.0) * 0.5,
+            alpha: rng.random_range(0.0..1.0),
+            background: (unit(rng) + 1.0) * 0.5,
+        })
+        .collect();
+    (student, rays)
+}
+
+fn loss(student: &Student, rays: &[StudentRay]) -> f64 {
+    student.forward(rays, 4).iter().map(|o| (o.rgb_error + o.alpha_error) as f64).sum::<f64>() / (4 * rays.len()) as f64
+}
+
+#[test]
+fn distill_student_gradients_match_finite_differences() {
+    let mut rng = SmallRng::seed_from_u64(7);
+    let (mut student, rays) = small_student(&mut rng);
+    let mut grads = student.zero_gradients();
+    let outputs = student.gradients(&rays, 4, &mut grads);
+    assert_eq!(outputs.len(), rays.len());
+    // The clamp of c_d + t·c_s must be exercised both ways for the check to mean something;
+    // with random nets it is mostly inside (0, 1).
+    let eps = 1e-3f32;
+    let groups: [&[f32]; 4] = [&grads.diffuse_grid, &grads.diffuse_mlp, &grads.psh, &grads.specular_mlp];
+    let names = ["diffuse grid", "diffuse MLP", "PSH features", "specular MLP"];
+    for (group, g) in groups.iter().enumerate() {
+        let mut order: Vec<usize> = (0..g.len()).collect();
+        order.sort_by(|&i, &j| g[j].abs().total_cmp(&g[i].abs()));
+        let large = order.iter().take_while(|&&i| g[i].abs() > 1e-5).count();
+        assert!(large >= 20, "{}: only {large} sizeable gradients", names[group]);
+        let mut picks: Vec<usize> = order[..12].to_vec();
+        picks.extend((0..8).map(|_| order[rng.random_range(12..large)]));
+        let mut agreed = 0;
+        for &i in &picks {
+            let get = |s: &Student| [&s.diffuse_grid.params[..], s.diffuse_mlp.params(), &s.psh.values[..], s.specular_mlp.params()][group][i];
+            let set = |s: &mut Student, v: f32| match group {
+                0 => s.diffuse_grid.params[i] = v,
+                1 => s.diffuse_mlp.update(|p| p[i] = v),
+                2 => s.psh.values[i] = v,
+                _ => s.specular_mlp.update(|p| p[i] = v),
+            };
+            let keep = get(&student);
+            set(&mut student, keep + eps);
+            let up = loss(&student, &rays);
+            set(&mut student, keep - eps);
+            let down = loss(&student, &rays);
+            set(&mut student, keep);
+            let fd = (up - down) / (2.0 * eps as f64);
+            let a = g[i] as f64;
+            agreed += ((a - fd).abs() <= 1e-2 * a.abs().max(fd.abs()) + 2e-6) as usize;
+        }
+        assert!(agreed >= 18, "{}: {agreed} of 20 gradients agree", names[group]);
+    }
+}
+
+#[test]
+fn distill_marks_cells_and_dilates() {
+    let bounds = Aabb::cube(1.0);
+    // One point in cell (2, 2, 2) of a 4³ grid: its 8 vertices, or 4³ after dilation by 1.
+    let p = Vec3::splat(0.1);
+    assert_eq!(marked_cells(&bounds, 4, 1, [p].into_iter(), 0).len(), 8);
+    assert_eq!(marked_cells(&bounds, 4, 1, [p].into_iter(), 1).len(), 64);
+    assert_eq!(marked_cells(&bounds, 4, 0, [p].into_iter(), 0), vec![UVec3::splat(2)]);
+    assert_eq!(marked_cells(&bounds, 4, 0, [p].into_iter(), 1).len(), 27);
+    // Points outside the box clamp to the border cells; corners stay in range.
+    let far = marked_cells(&bounds, 4, 1, [Vec3::splat(9.0)].into_iter(), 2);
+    assert!(far.iter().all(|v| v.max_element() <= 4));
+}
+
+const STUDENT_STEPS: u64 = 800;
+
+struct Pipeline {
+    teacher_psnr: f64,
+    asset: Asset,
+    asset_psnr: f64,
+    geometry_counts: (usize, usize, usize),
+    first_psnr: f64,
+    last_psnr: f64,
+}
+
+/// Teacher and student on a small glossy + diffuse + translucent scene; scored on its test views.
+fn pipeline() -> &'static Pipeline {
+    static RUN: OnceLock<Pipeline> = OnceLock::new();
+    RUN.get_or_init(|| {
+        let dir = TempDir::new("distill");
+        let synth_cfg = SynthConfig { width: 48, height: 48, n_train: 24, n_val: 1, n_test: 3, ..SynthConfig::new(SynthScene::Mixed) };
+        synth::generate(&synth_cfg, &dir.0).unwrap();
+        let train = Dataset::load(&dir.0, &LoadOptions::default()).unwrap();
+        let test = Dataset::load(&dir.0, &LoadOptions::split(Split::Test)).unwrap();
+        let mut teacher = crate::train::Trainer::new(TrainConfig::tiny());
+        for _ in 0..400 {
+            teacher.train_step(&train);
+        }
+        let score = |render: &dyn Fn(&crate::dataset::DatasetImage) -> Vec<f32>| {
+            test.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render(im))).sum::<f64>() / test.images.len() as f64
+        };
+        let teacher_psnr = score(&|im| teacher.render_image(im, Vec3::ONE));
+        let teacher_train = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &teacher.render_image(im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
+        println!("teacher on train views {teacher_train:.2} dB");
+        let cfg = DistillConfig::tiny(STUDENT_STEPS);
+        let geometry = geometry(&teacher, &train, &cfg).unwrap();
+        let geometry_counts = (geometry.density.brick_count(), geometry.hits.rays.len(), geometry.psh_vertices.len());
+        let (density, step) = (geometry.density.clone(), geometry.step);
+        let mut distiller = Distiller::new(geometry, cfg).unwrap();
+        let stats: Vec<DistillStats> = (0..STUDENT_STEPS).map(|_| distiller.train_step(&train)).collect();
+        let mean = |s: &[DistillStats]| s.iter().map(|s| s.psnr()).sum::<f64>() / s.len() as f64;
+        {
+            let mut rng = SmallRng::seed_from_u64(1);
+            for white in [true, false] {
+                let rays: Vec<StudentRay> = distiller.hits.rays.iter().map(|h| {
+                    let im = &train.images[h.image as usize];
+                    let (_, dir) = im.ray(h.x_px as u32, h.y_px as u32);
+                    let [r, g, b, a] = im.pixel(h.x_px as u32, h.y_px as u32);
+                    let background = if white { Vec3::ONE } else { Vec3::new(rng.random(), rng.random(), rng.random()) };
+                    StudentRay { p_hit: h.p_hit, dir, alpha_c: h.alpha_c, rgb: Vec3::new(r, g, b), alpha: a, background }
+                }).collect();
+                let out = distiller.student.forward(&rays, 64);
+                let mse = out.iter().map(|o| o.rgb_error as f64).sum::<f64>() / (3 * out.len()) as f64;
+                let amse = out.iter().map(|o| o.alpha_error as f64).sum::<f64>() / out.len() as f64;
+                println!("all hits white={white}: {:.2} dB, alpha mse {amse:.5}", -10.0 * mse.log10());
+            }
+        }
+        let asset = distiller.bake(density, step, "synthetic-mixed", serde_json::json!({ "test": true }));
+        let asset_psnr = score(&|im| render_image(&asset, im, Vec3::ONE));
+        if let Ok(dir) = std::env::var("NEPHELE_DEBUG_DIR") {
+            for (i, im) in train.images.iter().take(3).enumerate() {
+                let truth = im.composite_over(Vec3::ONE);
+                crate::train::trainer::eval::write_comparison_png(&std::path::Path::new(&dir).join(format!("asset{i}.png")), &truth, &render_image(&asset, im, Vec3::ONE), im.width, im.height).unwrap();
+                crate::train::trainer::eval::write_comparison_png(&std::path::Path::new(&dir).join(format!("teacher{i}.png")), &truth, &teacher.render_image(im, Vec3::ONE), im.width, im.height).unwrap();
+            }
+        }
+        let mlp_psnr = score(&|im| render_student_image(&distiller.student, &asset.density, step, asset.march.alpha_min, im, Vec3::ONE));
+        let train_psnr = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render_image(&asset, im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
+        println!(
+            "teacher {teacher_psnr:.2} dB, asset {asset_psnr:.2} dB (diffuse MLP {mlp_psnr:.2} dB; train views {train_psnr:.2} dB), batch {:.2} → {:.2} dB, counts {geometry_counts:?}",
+            mean(&stats[..30]),
+            mean(&stats[stats.len() - 30..])
+        );
+        Pipeline { teacher_psnr, asset_psnr, geometry_counts, first_psnr: mean(&stats[..30]), last_psnr: mean(&stats[stats.len() - 30..]), asset }
+    })
+}
+
+#[test]
+fn distill_pipeline_makes_a_valid_asset_close_to_its_teacher() {
+    let p = pipeline();
+    assert!(p.last_psnr > p.first_psnr + 5.0, "batch PSNR {:.2} → {:.2}", p.first_psnr, p.last_psnr);
+    // Only what the scene needs: bricks in a minority of cells, PSH far below a dense grid.
+    let (bricks, hits, vertices) = p.geometry_counts;
+    assert!(hits > 1000 && bricks > 0, "{:?}", p.geometry_counts);
+    assert!(bricks < 16 * 16 * 16 / 3, "{bricks} density bricks");
+    assert!(vertices < 65usize.pow(3) / 4, "{vertices} PSH vertices");
+    // The file round-trips and loads with every check.
+    let bytes = p.asset.to_bytes().unwrap();
+    assert_eq!(Asset::from_bytes(&bytes).unwrap(), p.asset);
+    // Held-out views: the asset is close to its teacher.
+    assert!(p.teacher_psnr > 20.0, "teacher {:.2} dB", p.teacher_psnr);
+    assert!(p.asset_psnr > p.teacher_psnr - 3.0 && p.asset_psnr > 20.0, "asset {:.2} dB vs teacher {:.2} dB", p.asset_psnr, p.teacher_psnr);
+}
+

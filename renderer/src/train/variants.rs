@@ -1,0 +1,207 @@
+//! Renderers for the speed/accuracy variants of NEPHELE's ablation (Table 5) that the runtime
+//! renderer does not serve, on the CPU, so `nephele bench tradeoff` can put every variant
+//! side by side on one backend:
+//!
+//! - **base**: the hit point and `α_c` from the teacher's density network instead of cubes
+//!   (same step and rule as [`model::march`]: samples `t0 + (k + ½)δ` in the fitted box,
+//!   skipping cells the teacher's occupancy grid marks empty, max-weight hit, stop at
+//!   `T < early_stop`), shaded by the student with diffuse from its MLP;
+//! - **+ density cubes**: hits from the baked cubes, diffuse still from the MLP;
+//! - the i-NGP baseline itself is [`Trainer::render`]; the full asset is the CPU backend.
+//!
+//! Each returns interleaved RGB over a background and where the time went.
+
+use std::time::Instant;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::{
+    distill::{Student, StudentRay},
+    field::FieldTape,
+    trainer::Trainer,
+};
+use crate::{
+    cubes::{Aabb, TextureCubes},
+    model::{self, MarchHit, RenderSettings, clip_ray},
+};
+
+/// A rendered ray batch: interleaved RGB, and milliseconds spent finding hits and in total.
+#[derive(Debug, Clone, Default)]
+pub struct VariantFrame {
+    pub rgb: Vec<f32>,
+    pub march_ms: f64,
+    pub total_ms: f64,
+    pub hits: usize,
+}
+
+/// Samples evaluated per ray and round in [`march_network`].
+const WINDOW: usize = 32;
+
+/// Marches rays through the teacher's density network (see the module note).
+pub fn march_network(teacher: &Trainer, bounds: &Aabb, step: f32, rays: &[(Vec3, Vec3)]) -> Vec<MarchHit> {
+    let early_stop = RenderSettings::default().early_stop;
+    rays.par_chunks(64)
+        .flat_map_iter(|chunk| {
+            struct State {
+                t0: f32,
+                t1: f32,
+                k: i32,
+                transmittance: f32,
+                hit: MarchHit,
+                done: bool,
+            }
+            let mut states: Vec<State> = chunk
+                .iter()
+                .map(|&(o, d)| {
+                    let (t0, t1, done) = clip_ray(bounds, o, d).map_or((0.0, 0.0, true), |(a, b)| (a, b, false));
+                    State { t0, t1, k: 0, transmittance: 1.0, hit: MarchHit::default(), done }
+                })
+                .collect();
+            let mut tape = FieldTape::default();
+            let mut points01 = Vec::new();
+            let mut owners: Vec<(usize, f32)> = Vec::new();
+            while states.iter().any(|s| !s.done) {
+                points01.clear();
+                owners.clear();
+                for (i, (s, &(o, d))) in states.iter_mut().zip(chunk).enumerate() {
+                    let mut taken = 0;
+                    while !s.done && taken < WINDOW {
+                        let t = s.t0 + (s.k as f32 + 0.5) * step;
+                        if t >= s.t1 {
+                            s.done = true;
+                            break;
+                        }
+                        s.k += 1;
+                        let p = o + t * d;
+                        if teacher.occupancy.is_occupied(p) {
+                            points01.push(teacher.to_unit(p).clamp(Vec3::ZERO, Vec3::ONE));
+                            owners.push((i, t));
+                            taken += 1;
+                        }
+                    }
+                    // A ray that ran out of samples this round is finished after them.
+                }
+                if points01.is_empty() {
+                    break;
+                }
+                teacher.field.forward_density(&points01, &mut tape);
+                let mut stopped = vec![false; states.len()];
+                for (&(i, t), &sigma) in owners.iter().zip(&tape.sigma) {
+                    if stopped[i] {
+                        continue;
+                    }
+                    let s = &mut states[i];
+                    let alpha = 1.0 - (-sigma * step).exp();
+                    let w = s.transmittance * alpha;
+                    if w > s.hit.w_max {
+                        s.hit.w_max = w;
+                        s.hit.t_hit = t;
+                    }
+                    s.transmittance *= 1.0 - alpha;
+                    s.hit.samples += 1;
+                    if s.transmittance < early_stop {
+                        stopped[i] = true;
+                        s.done = true;
+                    }
+                }
+            }
+            states
+                .into_iter()
+                .map(|s| MarchHit { alpha_c: 1.0 - s.transmittance, ..s.hit })
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+/// Shades marched rays with the student (diffuse from its MLP); misses get the background.
+fn shade_student(student: &Student, rays: &[(Vec3, Vec3)], marched: &[MarchHit], alpha_min: f32, background: Vec3) -> (Vec<f32>, usize) {
+    let hit_rays: Vec<StudentRay> = rays
+        .iter()
+        .zip(marched)
+        .filter(|(_, m)| m.alpha_c >= alpha_min)
+        .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background })
+        .collect();
+    let hits = hit_rays.len();
+    let mut shaded = student.forward(&hit_rays, 256).into_iter();
+    let rgb = marched
+        .iter()
+        .flat_map(|m| if m.alpha_c >= alpha_min { shaded.next().map_or(background, |o| o.pixel) } else { background }.to_array())
+        .collect();
+    (rgb, hits)
+}
+
+/// "base": hits from the density network, diffuse from the MLP.
+pub fn render_base(teacher: &Trainer, student: &Student, step: f32, alpha_min: f32, rays: &[(Vec3, Vec3)], background: Vec3) -> VariantFrame {
+    let start = Instant::now();
+    let marched = march_network(teacher, &student.bounds, step, rays);
+    let march_ms = start.elapsed().as_secs_f64() * 1e3;
+    let (rgb, hits) = shade_student(student, rays, &marched, alpha_min, background);
+    VariantFrame { rgb, march_ms, total_ms: start.elapsed().as_secs_f64() * 1e3, hits }
+}
+
+/// "+ density cubes": hits from the cubes, diffuse from the MLP.
+pub fn render_cubes_mlp(student: &Student, density: &TextureCubes, step: f32, alpha_min: f32, rays: &[(Vec3, Vec3)], background: Vec3) -> VariantFrame {
+    let start = Instant::now();
+    let settings = RenderSettings::default();
+    let marched: Vec<MarchHit> = rays.par_iter().map(|&(o, d)| model::march(density, o, d, step, &settings)).collect();
+    let march_ms = start.elapsed().as_secs_f64() * 1e3;
+    let (rgb, hits) = shade_student(student, rays, &marched, alpha_min, background);
+    VariantFrame { rgb, march_ms, total_ms: start.elapsed().as_secs_f64() * 1e3, hits }
+}
+
+/// The i-NGP baseline, timed.
+pub fn render_ngp(teacher: &Trainer, rays: &[(Vec3, Vec3)], background: Vec3) -> VariantFrame {
+    let start = Instant::now();
+    let out = teacher.render(rays, background);
+    let hits = out.iter().filter(|(_, a)| *a > 0.02).count();
+    let rgb = out.into_iter().flat_map(|(c, _)| c.to_array()).collect();
+    VariantFrame { rgb, march_ms: f64::NAN, total_ms: start.elapsed().as_secs_f64() * 1e3, hits }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::train::TrainConfig;
+
+    /// A network of constant density σ = 2 (zero encoding, raw log-density bias ln 2): the
+    /// network march and the march of cubes baked from it see the same σ (exact in f16), so
+    /// they find the same hits and coarse opacities; and α_c is 1 − exp(−σ·path) up to the
+    /// early stop.
+    #[test]
+    fn network_march_agrees_with_cubes_baked_from_it() {
+        let mut teacher = Trainer::new(TrainConfig::tiny());
+        teacher.field.grid.params.fill(0.0);
+        let raw_bias = teacher.field.density_mlp.params().len() - crate::train::field::GEO_FEATURES;
+        teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
+        let bounds = Aabb::cube(1.0);
+        let cfg = crate::train::distill::DistillConfig { density_grid: 8, density_brick: 4, ..crate::train::distill::DistillConfig::tiny(1) };
+        let density = crate::train::distill::bake_density(&teacher, bounds, &cfg);
+        assert_eq!(density.brick_count(), 512);
+        let step = cfg.step(&bounds);
+        let settings = RenderSettings::default();
+        let rays: Vec<(Vec3, Vec3)> = (0..64)
+            .map(|i| {
+                let a = i as f32 * 0.37;
+                let o = Vec3::new(3.0 * a.cos(), 0.5 * (a * 1.3).sin(), 3.0 * a.sin());
+                (o, (Vec3::new(0.1 * a.sin(), 0.0, 0.1) - o).normalize())
+            })
+            .chain([(Vec3::new(0.0, 0.0, 5.0), Vec3::NEG_Z), (Vec3::new(0.0, 3.0, 5.0), Vec3::NEG_Z), (Vec3::ZERO, Vec3::X)])
+            .collect();
+        let net = march_network(&teacher, &bounds, step, &rays);
+        for (&(o, d), n) in rays.iter().zip(&net) {
+            let c = model::march(&density, o, d, step, &settings);
+            assert!((c.alpha_c - n.alpha_c).abs() < 1e-4 && c.t_hit == n.t_hit, "{o} {d}: cubes {c:?} network {n:?}");
+            if let Some((t0, t1)) = clip_ray(&bounds, o, d) {
+                // n samples of constant σ: α_c = 1 − exp(−σδ)ⁿ, with n the samples in [t0, t1)
+                // unless the early stop came first.
+                let want = 1.0 - (-2.0 * step).exp().powi(n.samples as i32);
+                assert!((n.alpha_c - want).abs() < 1e-4, "{} vs {want}", n.alpha_c);
+                let all = ((t1 - t0) / step + 0.5).floor() as u32;
+                assert!(n.samples == all || n.samples + 1 == all || n.samples == all + 1 || n.alpha_c > 1.0 - settings.early_stop, "{} of {all} samples", n.samples);
+            } else {
+                assert_eq!(n.alpha_c, 0.0);
+            }
+        }
+    }
+}

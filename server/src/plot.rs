@@ -1,0 +1,180 @@
+//! A small line chart written straight to PNG (no plotting dependency): axes with ticks and
+//! numeric labels in a built-in 3×5 pixel font, one coloured polyline with markers per series,
+//! and a legend of coloured swatches. Enough for the benchmark figures.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+
+pub struct Series {
+    pub name: String,
+    pub rgb: [u8; 3],
+    pub points: Vec<(f64, f64)>,
+}
+
+const W: usize = 720;
+const H: usize = 460;
+const LEFT: usize = 70;
+const RIGHT: usize = 20;
+const TOP: usize = 40;
+const BOTTOM: usize = 50;
+
+/// 3×5 glyphs, rows top to bottom, bits left to right.
+fn glyph(c: char) -> Option<[u8; 5]> {
+    Some(match c {
+        '0' => [7, 5, 5, 5, 7],
+        '1' => [2, 6, 2, 2, 7],
+        '2' => [7, 1, 7, 4, 7],
+        '3' => [7, 1, 7, 1, 7],
+        '4' => [5, 5, 7, 1, 1],
+        '5' => [7, 4, 7, 1, 7],
+        '6' => [7, 4, 7, 5, 7],
+        '7' => [7, 1, 1, 1, 1],
+        '8' => [7, 5, 7, 5, 7],
+        '9' => [7, 5, 7, 1, 7],
+        '.' => [0, 0, 0, 0, 2],
+        '-' => [0, 0, 7, 0, 0],
+        'x' => [0, 5, 2, 5, 0],
+        _ => return None,
+    })
+}
+
+struct Canvas(Vec<u8>);
+
+impl Canvas {
+    fn put(&mut self, x: i64, y: i64, rgb: [u8; 3]) {
+        if (0..W as i64).contains(&x) && (0..H as i64).contains(&y) {
+            let i = 3 * (y as usize * W + x as usize);
+            self.0[i..i + 3].copy_from_slice(&rgb);
+        }
+    }
+    fn rect(&mut self, x: i64, y: i64, w: i64, h: i64, rgb: [u8; 3]) {
+        for yy in y..y + h {
+            for xx in x..x + w {
+                self.put(xx, yy, rgb);
+            }
+        }
+    }
+    /// Thick line by stamping squares along it.
+    fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), rgb: [u8; 3], thick: i64) {
+        let n = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
+        for i in 0..=n {
+            let t = i as f64 / n as f64;
+            let (x, y) = (x0 + t * (x1 - x0), y0 + t * (y1 - y0));
+            self.rect(x.round() as i64 - thick / 2, y.round() as i64 - thick / 2, thick, thick, rgb);
+        }
+    }
+    /// Text in the 3×5 font at `scale`; characters without a glyph leave a gap.
+    fn text(&mut self, x: i64, y: i64, s: &str, scale: i64, rgb: [u8; 3]) {
+        for (k, c) in s.chars().enumerate() {
+            if let Some(g) = glyph(c) {
+                for (row, bits) in g.iter().enumerate() {
+                    for col in 0..3 {
+                        if bits >> (2 - col) & 1 == 1 {
+                            self.rect(x + (k as i64 * 4 + col) * scale, y + row as i64 * scale, scale, scale, rgb);
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn label(v: f64) -> String {
+    if v.abs() >= 100.0 || v == v.round() { format!("{v:.0}") } else { format!("{v:.1}") }
+}
+
+/// Draws the series on shared axes (linear x, log-10 y when `log_y`) and writes a PNG.
+pub fn line_chart(path: &Path, series: &[Series], log_y: bool) -> Result<()> {
+    let mut c = Canvas(vec![255; W * H * 3]);
+    let pts = series.iter().flat_map(|s| s.points.iter().copied()).filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0));
+    let (mut x_lo, mut x_hi, mut y_lo, mut y_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for (x, y) in pts {
+        let y = if log_y { y.log10() } else { y };
+        x_lo = x_lo.min(x);
+        x_hi = x_hi.max(x);
+        y_lo = y_lo.min(y);
+        y_hi = y_hi.max(y);
+    }
+    if x_lo > x_hi {
+        (x_lo, x_hi, y_lo, y_hi) = (0.0, 1.0, 0.0, 1.0);
+    }
+    if log_y {
+        (y_lo, y_hi) = (y_lo.floor(), y_hi.ceil().max(y_lo.floor() + 1.0));
+    } else {
+        y_lo = y_lo.min(0.0);
+        y_hi = if y_hi > y_lo { y_hi * 1.05 } else { y_lo + 1.0 };
+    }
+    if x_hi <= x_lo {
+        x_hi = x_lo + 1.0;
+    }
+    let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
+    let to_px = |x: f64, y: f64| {
+        let y = if log_y { y.log10() } else { y };
+        (LEFT as f64 + (x - x_lo) / (x_hi - x_lo) * pw, TOP as f64 + (1.0 - (y - y_lo) / (y_hi - y_lo)) * ph)
+    };
+    let grey = [200, 200, 200];
+    let ink = [40, 40, 40];
+    // Grid and ticks.
+    for i in 0..=5 {
+        let x = x_lo + (x_hi - x_lo) * i as f64 / 5.0;
+        let (px, _) = to_px(x, if log_y { 10f64.powf(y_lo) } else { y_lo });
+        c.line((px, TOP as f64), (px, (H - BOTTOM) as f64), grey, 1);
+        c.text(px as i64 - 6, (H - BOTTOM + 8) as i64, &label(x), 2, ink);
+    }
+    let y_ticks: Vec<f64> =
+        if log_y { (y_lo as i64..=y_hi as i64).map(|e| 10f64.powi(e as i32)).collect() } else { (0..=5).map(|i| y_lo + (y_hi - y_lo) * i as f64 / 5.0).collect() };
+    for y in y_ticks {
+        let (_, py) = to_px(x_lo, y);
+        c.line((LEFT as f64, py), ((W - RIGHT) as f64, py), grey, 1);
+        let text = label(y);
+        c.text(LEFT as i64 - 8 - 8 * text.len() as i64, py as i64 - 5, &text, 2, ink);
+    }
+    c.line((LEFT as f64, TOP as f64), (LEFT as f64, (H - BOTTOM) as f64), ink, 2);
+    c.line((LEFT as f64, (H - BOTTOM) as f64), ((W - RIGHT) as f64, (H - BOTTOM) as f64), ink, 2);
+    // Series and legend swatches (in series order, left to right at the top).
+    for (k, s) in series.iter().enumerate() {
+        let mut prev: Option<(f64, f64)> = None;
+        for &(x, y) in s.points.iter().filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0)) {
+            let p = to_px(x, y);
+            if let Some(q) = prev {
+                c.line(q, p, s.rgb, 3);
+            }
+            c.rect(p.0 as i64 - 4, p.1 as i64 - 4, 9, 9, s.rgb);
+            prev = Some(p);
+        }
+        c.rect(LEFT as i64 + 10 + 60 * k as i64, 12, 40, 14, s.rgb);
+    }
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), W as u32, H as u32);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header().and_then(|mut w| w.write_image_data(&c.0)).with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chart_is_a_png_with_the_series_colours() {
+        let dir = std::env::temp_dir().join(format!("nephele-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("chart.png");
+        let series = [
+            Series { name: "a".into(), rgb: [220, 40, 40], points: vec![(1.0, 1000.0), (2.0, 300.0), (3.0, 90.0)] },
+            Series { name: "b".into(), rgb: [40, 40, 220], points: vec![(1.0, 20.0), (2.0, 12.0), (3.0, f64::NAN)] },
+        ];
+        line_chart(&path, &series, true).unwrap();
+        let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path).unwrap()));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        assert_eq!((info.width, info.height), (W as u32, H as u32));
+        for s in &series {
+            let count = buf.chunks_exact(3).filter(|p| p == &s.rgb).count();
+            assert!(count > 200, "{}: {count} pixels", s.name);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,336 @@
+//! `nephele bench tradeoff`: the speed/accuracy trade of NEPHELE's ablation (Table 5) and of
+//! its distance sweep (Fig. 14), measured here, side by side in one run on one backend (the
+//! CPU: the only one every variant has) and one size.
+//!
+//! From one trained i-NGP checkpoint (the teacher) it builds the geometry once, trains a
+//! student per PSH size, and then, for each variant, scores held-out views (PSNR / SSIM over
+//! white at the dataset's size) and times frames at the benchmark size:
+//!
+//! | variant | hit point | diffuse | E_s |
+//! |---|---|---|---|
+//! | i-NGP | volume rendering of the field | — | — |
+//! | i-NOLF base | density network | MLP | PSH 256 |
+//! | + density cubes | cubes | MLP | PSH 256 |
+//! | + diffuse cubes (the asset) | cubes | cubes | PSH 256 |
+//! | PSH 128 / 512 | cubes | cubes | PSH 128 / 512 |
+//!
+//! The distance sweep renders an orbit view from far to filling the screen with i-NGP and
+//! the asset and plots ms/frame to a PNG.
+
+use std::{
+    fmt::Write as _,
+    path::PathBuf,
+    sync::Arc,
+    time::Instant,
+};
+
+use anyhow::{Context, Result, bail};
+use glam::{DVec3, Vec3};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+use nephele_renderer::{
+    Asset, Backend, CpuBackend, Intrinsics, RenderSettings, View, ViewRequest,
+    dataset::{Dataset, DatasetImage, LoadOptions, Split},
+    train::{
+        Trainer,
+        distill::{self, DistillConfig, Distiller, Geometry, Student},
+        trainer::eval::{psnr, ssim},
+        variants::{self, VariantFrame},
+    },
+};
+
+use crate::plot::{Series, line_chart};
+
+#[derive(Debug, Clone)]
+pub struct TradeoffOptions {
+    pub dataset: PathBuf,
+    pub teacher: PathBuf,
+    pub downscale: u32,
+    pub holdout_every: Option<usize>,
+    pub nolf_steps: u64,
+    pub psh_grids: Vec<u32>,
+    pub size: (u32, u32),
+    pub views: usize,
+    pub distances: usize,
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    pub variant: String,
+    pub psnr: f64,
+    pub ssim: f64,
+    /// Bytes of what the variant needs stored (f32 networks as trained, f16 cubes and PSH).
+    pub model_bytes: u64,
+    /// Bytes the CPU renderer holds beyond that (f32 copies of f16 data, occupancy grid,
+    /// transposed weights).
+    pub runtime_extra_bytes: u64,
+    pub march_ms: f64,
+    pub total_ms: f64,
+    pub fps: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SweepPoint {
+    pub distance: f64,
+    pub coverage: f64,
+    pub ngp_ms: f64,
+    pub nolf_ms: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub dataset: String,
+    pub eval_views: usize,
+    pub eval_size: (u32, u32),
+    pub bench_size: (u32, u32),
+    pub rows: Vec<Row>,
+    pub sweep: Vec<SweepPoint>,
+    pub plot: String,
+}
+
+fn f32_bytes(n: usize) -> u64 {
+    4 * n as u64
+}
+
+/// Rays of a view (world space, f32), row-major.
+fn view_rays(view: &View) -> Vec<(Vec3, Vec3)> {
+    let k = view.intrinsics;
+    (0..k.height)
+        .flat_map(|y| (0..k.width).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let (o, d) = view.ray_in_world(x as f64 + 0.5, y as f64 + 0.5);
+            (o.as_vec3(), d.as_vec3())
+        })
+        .collect()
+}
+
+fn asset_memory(asset: &Asset) -> (u64, u64) {
+    let stored = asset.density.stored_bytes() + asset.diffuse.stored_bytes() + asset.psh.stored_bytes() + f32_bytes(asset.mlp.parameter_count());
+    // The CPU keeps f16 values as f32 and a transposed copy of the MLP.
+    let extra = 2 * (asset.density.values.len() + asset.diffuse.values.len() + asset.psh.values.len()) as u64
+        + f32_bytes(asset.mlp.w0.len() + asset.mlp.w1.len() + asset.mlp.w2.len());
+    (stored, extra)
+}
+
+fn student_memory(s: &Student) -> u64 {
+    f32_bytes(s.diffuse_grid.params.len() + s.diffuse_mlp.params().len() + s.specular_mlp.params().len()) + s.psh.stored_bytes()
+}
+
+fn bar(prefix: &'static str, len: u64) -> ProgressBar {
+    let b = ProgressBar::new(len);
+    b.set_style(ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} (ETA {eta})").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    b.set_prefix(prefix);
+    b
+}
+
+/// Median wall time of `runs` calls (one if a call takes over 2 s).
+fn timed<T>(runs: usize, mut f: impl FnMut() -> T) -> (T, f64) {
+    let mut times = Vec::new();
+    let mut last;
+    loop {
+        let t = Instant::now();
+        last = f();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        if times.len() >= runs || times[0] > 2000.0 {
+            break;
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    (last, times[times.len() / 2])
+}
+
+pub fn run(opts: &TradeoffOptions) -> Result<Report> {
+    if opts.psh_grids.is_empty() || !opts.psh_grids.contains(&256) {
+        bail!("--psh must include 256 (the grid of the base and cube variants)");
+    }
+    let (teacher, _) = Trainer::load_checkpoint(&opts.teacher, None).with_context(|| format!("loading {}", opts.teacher.display()))?;
+    let load = |split| LoadOptions { split, downscale: opts.downscale, holdout_every: opts.holdout_every, max_images: None };
+    let train = Dataset::load(&opts.dataset, &load(Split::Train)).with_context(|| format!("loading {}", opts.dataset.display()))?;
+    let mut test = Dataset::load(&opts.dataset, &load(Split::Test)).context("loading the test split (held-out views; use --holdout-every N for a dataset without one)")?;
+    test.images.truncate(opts.views.max(1));
+    std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
+    eprintln!("teacher step {}; {} train and {} held-out views", teacher.step, train.images.len(), test.images.len());
+
+    let base_cfg = DistillConfig::default_for(opts.nolf_steps);
+    let t = Instant::now();
+    let geometry: Geometry = distill::geometry(&teacher, &train, &base_cfg).map_err(anyhow::Error::msg)?;
+    eprintln!("geometry: {} density bricks, {} hits in {:.1} s", geometry.density.brick_count(), geometry.hits.rays.len(), t.elapsed().as_secs_f64());
+    // One student per PSH size.
+    let mut students: Vec<(u32, Distiller, Arc<Asset>)> = Vec::new();
+    for &n in &opts.psh_grids {
+        let cfg = DistillConfig { psh_grid: n, ..base_cfg.clone() };
+        let mut d = Distiller::new(geometry.with_psh_grid(n, cfg.psh_dilation), cfg).context("building the PSH")?;
+        let b = bar("nolf", opts.nolf_steps);
+        b.set_message(format!("PSH {n}"));
+        while d.step < opts.nolf_steps {
+            let s = d.train_step(&train);
+            b.set_position(d.step);
+            b.set_message(format!("PSH {n}: batch PSNR {:.2} dB", s.psnr()));
+        }
+        b.finish_and_clear();
+        let asset = Arc::new(d.bake(geometry.density.clone(), geometry.step, &train.name, serde_json::json!({ "bench": "tradeoff", "psh": n })));
+        eprintln!("PSH {n}: {} entries, asset {} bytes", asset.psh.len(), asset.to_bytes()?.len());
+        students.push((n, d, asset));
+    }
+    let (alpha_min, step) = (base_cfg.alpha_min, geometry.step);
+    let main = students.iter().find(|s| s.0 == 256).expect("checked above");
+    let backend = CpuBackend;
+
+    // Quality on held-out views.
+    type Render<'a> = Box<dyn Fn(&DatasetImage) -> Vec<f32> + 'a>;
+    let mut quality: Vec<(String, Render<'_>)> = vec![
+        ("i-NGP".into(), Box::new(|im: &DatasetImage| teacher.render_image(im, Vec3::ONE))),
+        ("i-NOLF base (density network, diffuse MLP, PSH 256)".into(), Box::new(|im: &DatasetImage| {
+            variants::render_base(&teacher, &main.1.student, step, alpha_min, &im.rays().collect::<Vec<_>>(), Vec3::ONE).rgb
+        })),
+        ("+ density cubes (diffuse MLP, PSH 256)".into(), Box::new(|im: &DatasetImage| {
+            variants::render_cubes_mlp(&main.1.student, &geometry.density, step, alpha_min, &im.rays().collect::<Vec<_>>(), Vec3::ONE).rgb
+        })),
+    ];
+    for (n, _, asset) in &students {
+        let name = if *n == 256 { "+ diffuse cubes, PSH 256 (the asset)".to_string() } else { format!("PSH {n} (cubes)") };
+        quality.push((name, Box::new(move |im: &DatasetImage| distill::render_image(asset, im, Vec3::ONE))));
+    }
+    let b = bar("eval", (quality.len() * test.images.len()) as u64);
+    let mut scores = Vec::new();
+    for (name, render) in &quality {
+        let (mut p, mut s) = (0.0, 0.0);
+        for im in &test.images {
+            let truth = im.composite_over(Vec3::ONE);
+            let out = render(im);
+            p += psnr(&truth, &out);
+            s += ssim(&truth, &out, im.width as usize, im.height as usize, 3);
+            b.inc(1);
+        }
+        let n = test.images.len() as f64;
+        scores.push((name.clone(), p / n, s / n));
+    }
+    b.finish_and_clear();
+
+    // Speed at the benchmark size, from the first held-out camera.
+    let first = &test.images[0];
+    let k = first.view.intrinsics;
+    let (w, h) = opts.size;
+    let intrinsics = Intrinsics { fx: k.fx * w as f32 / k.width as f32, fy: k.fy * h as f32 / k.height as f32, cx: k.cx * w as f32 / k.width as f32, cy: k.cy * h as f32 / k.height as f32, width: w, height: h };
+    let view = View { world_from_camera: first.view.world_from_camera, intrinsics };
+    let rays = view_rays(&view);
+    let settings = RenderSettings::default();
+    let time_asset = |asset: &Arc<Asset>, view: &View| -> Result<(f64, f64, f64)> {
+        let prepared = backend.prepare(asset.clone())?;
+        let req = [ViewRequest::new(view.clone()).with_background(Vec3::ONE)];
+        prepared.render(&req, &settings)?;
+        let mut runs = Vec::new();
+        for _ in 0..3 {
+            runs.push(prepared.render(&req, &settings)?);
+        }
+        runs.sort_by(|a, b| a.stats.total_ms.total_cmp(&b.stats.total_ms));
+        let s = runs[1].stats;
+        Ok((s.march_ms, s.total_ms, s.hits as f64 / s.rays.max(1) as f64))
+    };
+    let b = bar("time", scores.len() as u64);
+    let mut rows = Vec::new();
+    let ngp_model = f32_bytes(teacher.field.parameter_count());
+    let ngp_extra = teacher.occupancy.cell_count() as u64 * 4 + teacher.occupancy.cell_count() as u64 / 8 + f32_bytes(teacher.field.density_mlp.params().len() + teacher.field.colour_mlp.params().len());
+    let student_bytes = student_memory(&main.1.student);
+    for (i, (name, p, s)) in scores.iter().enumerate() {
+        let (march_ms, total_ms, model_bytes, extra) = match i {
+            0 => {
+                let (f, ms): (VariantFrame, f64) = timed(1, || variants::render_ngp(&teacher, &rays, Vec3::ONE));
+                (f.march_ms, ms, ngp_model, ngp_extra)
+            }
+            1 => {
+                let (f, ms) = timed(1, || variants::render_base(&teacher, &main.1.student, step, alpha_min, &rays, Vec3::ONE));
+                (f.march_ms, ms, ngp_model + student_bytes, ngp_extra)
+            }
+            2 => {
+                let (f, ms) = timed(3, || variants::render_cubes_mlp(&main.1.student, &geometry.density, step, alpha_min, &rays, Vec3::ONE));
+                (f.march_ms, ms, geometry.density.stored_bytes() + student_bytes, 2 * geometry.density.values.len() as u64)
+            }
+            _ => {
+                let asset = &students[i - 3].2;
+                let (march, total, _) = time_asset(asset, &view)?;
+                let (stored, extra) = asset_memory(asset);
+                (march, total, stored, extra)
+            }
+        };
+        rows.push(Row { variant: name.clone(), psnr: *p, ssim: *s, model_bytes, runtime_extra_bytes: extra, march_ms, total_ms, fps: 1e3 / total_ms });
+        b.inc(1);
+    }
+    b.finish_and_clear();
+
+    // Distance sweep: an orbit at the first held-out camera's direction, far → filling the screen.
+    let centre = main.2.bounds.center().as_dvec3();
+    let eye = first.view.world_from_camera.w_axis.truncate();
+    let dir = (eye - centre).normalize();
+    let radius = main.2.bounds.radius() as f64;
+    let (near, far) = (1.2 * radius, 8.0 * radius);
+    let n = opts.distances.max(2);
+    let b = bar("sweep", n as u64);
+    let mut sweep = Vec::new();
+    for i in 0..n {
+        let distance = far * (near / far).powf(i as f64 / (n - 1) as f64);
+        let v = View::look_at(centre + distance * dir, centre, DVec3::Z, intrinsics);
+        let (_, nolf_ms, coverage) = time_asset(&main.2, &v)?;
+        let (_, ngp_ms) = timed(1, || variants::render_ngp(&teacher, &view_rays(&v), Vec3::ONE));
+        sweep.push(SweepPoint { distance, coverage, ngp_ms, nolf_ms });
+        b.inc(1);
+    }
+    b.finish_and_clear();
+    let plot = opts.out.join("tradeoff_distance.png");
+    line_chart(
+        &plot,
+        &[
+            Series { name: "i-NGP".into(), rgb: [214, 39, 40], points: sweep.iter().map(|p| (p.distance, p.ngp_ms)).collect() },
+            Series { name: "i-NOLF".into(), rgb: [31, 119, 180], points: sweep.iter().map(|p| (p.distance, p.nolf_ms)).collect() },
+        ],
+        true,
+    )?;
+    let report = Report {
+        dataset: opts.dataset.display().to_string(),
+        eval_views: test.images.len(),
+        eval_size: (first.width, first.height),
+        bench_size: opts.size,
+        rows,
+        sweep,
+        plot: plot.display().to_string(),
+    };
+    std::fs::write(opts.out.join("tradeoff.json"), serde_json::to_string_pretty(&report)?)?;
+    Ok(report)
+}
+
+pub fn format_report(r: &Report) -> String {
+    let mut s = String::new();
+    let (w, h) = r.bench_size;
+    let _ = writeln!(
+        s,
+        "Table 5 here: {} held-out views at {}x{} (PSNR/SSIM over white); times at {w}x{h}, CPU backend, same run\n",
+        r.eval_views, r.eval_size.0, r.eval_size.1
+    );
+    let _ = writeln!(s, "| variant | PSNR dB | SSIM | model MB | extra runtime MB | ray-march ms | total ms | FPS | speed-up vs i-NGP |");
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let base = r.rows.first().map_or(f64::NAN, |x| x.total_ms);
+    for x in &r.rows {
+        let march = if x.march_ms.is_finite() { format!("{:.1}", x.march_ms) } else { "—".into() };
+        let _ = writeln!(
+            s,
+            "| {} | {:.2} | {:.4} | {:.2} | {:.2} | {march} | {:.1} | {:.2} | {:.1}× |",
+            x.variant,
+            x.psnr,
+            x.ssim,
+            x.model_bytes as f64 / 1048576.0,
+            x.runtime_extra_bytes as f64 / 1048576.0,
+            x.total_ms,
+            x.fps,
+            base / x.total_ms
+        );
+    }
+    let _ = writeln!(s, "\nFig. 14 here: ms per {w}x{h} frame as the camera approaches (red i-NGP, blue i-NOLF; plot {})\n", r.plot);
+    let _ = writeln!(s, "| distance | screen coverage | i-NGP ms | i-NOLF ms | speed-up |");
+    let _ = writeln!(s, "|---:|---:|---:|---:|---:|");
+    for p in &r.sweep {
+        let _ = writeln!(s, "| {:.2} | {:.1}% | {:.1} | {:.1} | {:.1}× |", p.distance, 100.0 * p.coverage, p.ngp_ms, p.nolf_ms, p.ngp_ms / p.nolf_ms);
+    }
+    s
+}
