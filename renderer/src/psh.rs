@@ -262,7 +262,7 @@ fn try_build(points: &[UVec3], m: u32, r: u32, rng: &mut SmallRng) -> Option<(Ve
                 }
             }
         }
-        let Some(phi) = found else { return None };
+        let phi = found?;
         for (&p, &s) in bucket.iter().zip(&slots) {
             keys[s] = pack(p);
         }

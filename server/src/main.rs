@@ -263,6 +263,9 @@ enum BenchCommand {
         /// Where the plot and JSON go.
         #[arg(long, default_value = "tradeoff")]
         out: PathBuf,
+        /// Also time i-NGP and the asset on wgpu (one frame each; slow on software Vulkan).
+        #[arg(long)]
+        gpu: bool,
     },
     /// RGB→I420 and H.264 encode times on a moving test pattern.
     Encode {
@@ -531,10 +534,10 @@ fn main() -> Result<()> {
         Some(Command::Bench { what: BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms } }) => {
             bench_stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms)
         }
-        Some(Command::Bench { what: BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out } }) => {
+        Some(Command::Bench { what: BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu } }) => {
             use nephele::tradeoff::{TradeoffOptions, format_report, run};
             let size = parse_size(&size)?;
-            let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out })?;
+            let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out, gpu })?;
             print!("{}", format_report(&report));
             Ok(())
         }

@@ -120,7 +120,9 @@ pub fn line_chart(path: &Path, series: &[Series], log_y: bool) -> Result<()> {
         let x = x_lo + (x_hi - x_lo) * i as f64 / 5.0;
         let (px, _) = to_px(x, if log_y { 10f64.powf(y_lo) } else { y_lo });
         c.line((px, TOP as f64), (px, (H - BOTTOM) as f64), grey, 1);
-        c.text(px as i64 - 6, (H - BOTTOM + 8) as i64, &label(x), 2, ink);
+        let text = label(x);
+        let width = 8 * text.len() as i64;
+        c.text((px as i64 - width / 2).min((W - 2) as i64 - width), (H - BOTTOM + 8) as i64, &text, 2, ink);
     }
     let y_ticks: Vec<f64> =
         if log_y { (y_lo as i64..=y_hi as i64).map(|e| 10f64.powi(e as i32)).collect() } else { (0..=5).map(|i| y_lo + (y_hi - y_lo) * i as f64 / 5.0).collect() };

@@ -31,6 +31,7 @@ use serde::Serialize;
 
 use nephele_renderer::{
     Asset, Backend, CpuBackend, Intrinsics, RenderSettings, View, ViewRequest,
+    gpu::{GpuBackend, ngp::GpuNgp},
     dataset::{Dataset, DatasetImage, LoadOptions, Split},
     train::{
         Trainer,
@@ -54,6 +55,17 @@ pub struct TradeoffOptions {
     pub views: usize,
     pub distances: usize,
     pub out: PathBuf,
+    /// Also time i-NGP and the asset on the wgpu backend at the benchmark size.
+    pub gpu: bool,
+}
+
+/// i-NGP and the i-NOLF asset on the wgpu backend, one frame each at the benchmark size.
+#[derive(Debug, Clone, Serialize)]
+pub struct GpuRow {
+    pub adapter: String,
+    pub ngp_ms: f64,
+    pub nolf_ms: f64,
+    pub nolf_march_ms: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -88,6 +100,7 @@ pub struct Report {
     pub rows: Vec<Row>,
     pub sweep: Vec<SweepPoint>,
     pub plot: String,
+    pub gpu: Option<GpuRow>,
 }
 
 fn f32_bytes(n: usize) -> u64 {
@@ -175,6 +188,8 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         students.push((n, d, asset));
     }
     let (alpha_min, step) = (base_cfg.alpha_min, geometry.step);
+    // The asset (PSH 256) right after the cube variants, then the other PSH sizes.
+    students.sort_by_key(|s| (s.0 != 256, s.0));
     let main = students.iter().find(|s| s.0 == 256).expect("checked above");
     let backend = CpuBackend;
 
@@ -217,9 +232,9 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     let view = View { world_from_camera: first.view.world_from_camera, intrinsics };
     let rays = view_rays(&view);
     let settings = RenderSettings::default();
-    let time_asset = |asset: &Arc<Asset>, view: &View| -> Result<(f64, f64, f64)> {
+    let time_on = |backend: &dyn Backend, asset: &Arc<Asset>, view: &View| -> Result<(f64, f64, f64)> {
         let prepared = backend.prepare(asset.clone())?;
-        let req = [ViewRequest::new(view.clone()).with_background(Vec3::ONE)];
+        let req = [ViewRequest::new(*view).with_background(Vec3::ONE)];
         prepared.render(&req, &settings)?;
         let mut runs = Vec::new();
         for _ in 0..3 {
@@ -229,6 +244,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         let s = runs[1].stats;
         Ok((s.march_ms, s.total_ms, s.hits as f64 / s.rays.max(1) as f64))
     };
+    let time_asset = |asset: &Arc<Asset>, view: &View| time_on(&backend, asset, view);
     let b = bar("time", scores.len() as u64);
     let mut rows = Vec::new();
     let ngp_model = f32_bytes(teacher.field.parameter_count());
@@ -287,6 +303,17 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         ],
         true,
     )?;
+    let gpu = if opts.gpu {
+        let gpu_backend = GpuBackend::new().context("--gpu: no wgpu adapter")?;
+        let adapter = gpu_backend.ctx.describe();
+        let ngp = GpuNgp::new(gpu_backend.ctx.clone(), &teacher)?;
+        ngp.render(&rays[..64.min(rays.len())], Vec3::ONE)?; // compiles the kernel
+        let (_, ngp_ms) = ngp.render(&rays, Vec3::ONE)?;
+        let (nolf_march_ms, nolf_ms, _) = time_on(&gpu_backend, &main.2, &view)?;
+        Some(GpuRow { adapter, ngp_ms, nolf_ms, nolf_march_ms })
+    } else {
+        None
+    };
     let report = Report {
         dataset: opts.dataset.display().to_string(),
         eval_views: test.images.len(),
@@ -295,6 +322,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         rows,
         sweep,
         plot: plot.display().to_string(),
+        gpu,
     };
     std::fs::write(opts.out.join("tradeoff.json"), serde_json::to_string_pretty(&report)?)?;
     Ok(report)
@@ -324,6 +352,17 @@ pub fn format_report(r: &Report) -> String {
             x.total_ms,
             x.fps,
             base / x.total_ms
+        );
+    }
+    if let Some(g) = &r.gpu {
+        let _ = writeln!(
+            s,
+            "\nwgpu ({}), {w}x{h}, same view: i-NGP {:.0} ms, i-NOLF asset {:.0} ms (ray march {:.0} ms): {:.1}× faster\n",
+            g.adapter,
+            g.ngp_ms,
+            g.nolf_ms,
+            g.nolf_march_ms,
+            g.ngp_ms / g.nolf_ms
         );
     }
     let _ = writeln!(s, "\nFig. 14 here: ms per {w}x{h} frame as the camera approaches (red i-NGP, blue i-NOLF; plot {})\n", r.plot);

@@ -109,6 +109,8 @@ pub fn override_config(base: &DistillConfig, overrides: &str) -> Result<DistillC
 
 #[derive(Debug, Clone, Serialize)]
 pub struct NgpSummary {
+    /// The scene box (min, max), world units.
+    pub bounds: [[f32; 3]; 2],
     pub resumed_from_step: Option<u64>,
     pub steps: u64,
     /// Batch loss (MSE) and PSNR of the last step taken in this run (None if none was).
@@ -218,6 +220,16 @@ pub fn train(opts: &TrainOptions) -> Result<TrainSummary> {
     let data = Dataset::load(&opts.dataset, &load).with_context(|| format!("loading the train split of {}", opts.dataset.display()))?;
     let (w, h) = data.images.first().map(|i| (i.width, i.height)).unwrap_or((0, 0));
     eprintln!("dataset {}: {} train images of {w}x{h} (downscale {}) in {:.1} s", data.name, data.images.len(), opts.downscale, t.elapsed().as_secs_f64());
+    // instant-ngp's `aabb_scale` k grows its unit cube about the centre; with its default
+    // scale 0.33 and offset 0.5 (which NeRF-synthetic's [-1.5, 1.5]³ matches), that is the
+    // world box [-1.5k, 1.5k]³.
+    if let Some(k) = data.aabb_scale {
+        if !(1.0..=128.0).contains(&k) {
+            bail!("aabb_scale {k} in {} is outside 1..=128", data.transforms_file.display());
+        }
+        config.bounds = nephele_renderer::cubes::Aabb::cube(1.5 * k as f32);
+        eprintln!("aabb_scale {k}: scene box [-{0}, {0}]³", 1.5 * k);
+    }
     let work = work_dir(opts);
     std::fs::create_dir_all(&work).with_context(|| format!("creating work directory {}", work.display()))?;
     let provenance = serde_json::json!({
@@ -371,6 +383,7 @@ fn train_ngp(opts: &TrainOptions, config: TrainConfig, steps: u64, data: &Datase
     let seconds = t.elapsed().as_secs_f64();
     let taken = trainer.step - start_step;
     let summary = NgpSummary {
+        bounds: [trainer.config.bounds.min.to_array(), trainer.config.bounds.max.to_array()],
         resumed_from_step,
         steps: trainer.step,
         final_loss: last.map(|s| s.batch.loss),
@@ -548,13 +561,13 @@ pub struct EvalReport {
 /// What `eval` renders with.
 enum Model {
     Ngp(Box<Trainer>),
-    Nolf(Asset),
+    Nolf(Box<Asset>),
 }
 
 pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
     let path = &opts.checkpoint;
     let (model, step) = if path.extension().is_some_and(|e| e == "nolf") {
-        (Model::Nolf(Asset::load(path).with_context(|| format!("loading asset {}", path.display()))?), None)
+        (Model::Nolf(Box::new(Asset::load(path).with_context(|| format!("loading asset {}", path.display()))?)), None)
     } else {
         let (trainer, meta) = Trainer::load_checkpoint(path, None).with_context(|| format!("loading checkpoint {}", path.display()))?;
         (Model::Ngp(Box::new(trainer)), Some(meta.step))

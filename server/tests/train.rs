@@ -191,3 +191,25 @@ fn bench_tradeoff_prints_the_table_and_plots_the_sweep() {
     assert!(cov[2] > cov[0], "{cov:?}");
     assert_eq!(png_size(&dir.0.join("bench/tradeoff_distance.png")), (720, 460));
 }
+
+/// An instant-ngp `transforms.json` with `aabb_scale` trains in the grown box.
+#[test]
+fn train_maps_aabb_scale_to_the_scene_box() {
+    let dir = TempDir::new("aabb");
+    let data = dir.path("data");
+    ok(&["synth", "--scene", "diffuse", "--size", "16x16", "--train", "3", "--val", "0", "--test", "0", "--out", &data]);
+    let file = dir.0.join("data/transforms_train.json");
+    let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    json["aabb_scale"] = 2.into();
+    std::fs::write(dir.0.join("data/transforms.json"), json.to_string()).unwrap();
+    for split in ["train", "val", "test"] {
+        let _ = std::fs::remove_file(dir.0.join(format!("data/transforms_{split}.json")));
+    }
+    let summary = ok(&["train", &data, "--out", &dir.path("w"), "--until", "ngp", "--preset", "tiny", "--steps", "2", "--json"]);
+    assert_eq!(summary["ngp"]["bounds"], serde_json::json!([[-3.0, -3.0, -3.0], [3.0, 3.0, 3.0]]), "{summary}");
+    json["aabb_scale"] = 1000.into();
+    std::fs::write(dir.0.join("data/transforms.json"), json.to_string()).unwrap();
+    let o = nephele(&["train", &data, "--out", &dir.path("w2"), "--until", "ngp", "--preset", "tiny", "--steps", "2"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && stderr.contains("aabb_scale 1000"), "{stderr}");
+}

@@ -12,6 +12,8 @@ use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
 pub use wgpu::DeviceType;
 
+pub mod ngp;
+
 use crate::{
     asset::Asset,
     camera::RayFrame,

@@ -120,7 +120,7 @@ mod tests {
         // The first step moves every touched parameter by about the learning rate.
         let mut p = vec![1.0f32, 1.0];
         let mut adam = Adam::new(AdamConfig::default(), 2);
-        adam.step(&mut p, &mut vec![3.0, -1e-3], false);
+        adam.step(&mut p, &mut [3.0, -1e-3], false);
         assert!((p[0] - 0.99).abs() < 1e-5 && (p[1] - 1.01).abs() < 1e-5, "{p:?}");
     }
 }

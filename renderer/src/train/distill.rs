@@ -65,6 +65,10 @@ pub struct DistillConfig {
     pub diffuse_brick: u32,
     /// Diffuse bricks go in cells holding training hits and this many cells around them.
     pub diffuse_dilation: u32,
+    /// Train the diffuse net through the trilinear lattice of its bake (see
+    /// [`Student::diffuse_lattice`]).
+    #[serde(default)]
+    pub train_on_bake_lattice: bool,
     /// PSH grid `N` and features per vertex.
     pub psh_grid: u32,
     pub psh_features: u32,
@@ -101,6 +105,7 @@ impl DistillConfig {
             diffuse_grid: 32,
             diffuse_brick: 4,
             diffuse_dilation: 0,
+            train_on_bake_lattice: true,
             psh_grid: 128,
             psh_features: 4,
             psh_dilation: 1,
@@ -401,6 +406,10 @@ pub struct Student {
     pub diffuse_grid: HashGrid,
     /// `[E_d] → 64 → 4` (c_d, tint).
     pub diffuse_mlp: Mlp,
+    /// When set, the diffuse net is read as the renderer reads the baked cubes: evaluated at
+    /// the 8 corners of the cell of this fine lattice (cells per axis over `bounds`) around
+    /// the hit, outputs blended trilinearly. Training then optimises what is baked.
+    pub diffuse_lattice: Option<u32>,
     /// Trainable features live in `psh.values` (f32 while training).
     pub psh: SpatialHash,
     /// `[E_s, SH4, α_c] → 64 → 64 → 4` (c_s, α).
@@ -441,6 +450,8 @@ pub struct StudentOutput {
 
 #[derive(Default)]
 struct ChunkGradients {
+    /// Where the diffuse net was evaluated (rows of `d_encoded`).
+    points01: Vec<Vec3>,
     diffuse_mlp: Vec<f32>,
     specular_mlp: Vec<f32>,
     d_encoded: Vec<f32>,
@@ -461,7 +472,8 @@ impl Student {
         let tint_bias = diffuse_mlp.params().len() - 1;
         diffuse_mlp.update(|p| p[tint_bias] = -4.0);
         let specular_mlp = Mlp::new(&[psh.features as usize + SH_COEFFS + 1, HIDDEN, HIDDEN, 4], rng);
-        Self { bounds, diffuse_grid, diffuse_mlp, psh, specular_mlp }
+        let diffuse_lattice = cfg.train_on_bake_lattice.then_some(cfg.diffuse_grid * cfg.diffuse_brick);
+        Self { bounds, diffuse_grid, diffuse_mlp, diffuse_lattice, psh, specular_mlp }
     }
 
     pub fn to_unit(&self, p: Vec3) -> Vec3 {
@@ -492,6 +504,26 @@ impl Student {
             .collect()
     }
 
+    /// Where the diffuse net is evaluated for a hit and with what weights: the hit itself, or
+    /// the 8 lattice corners around it (the trilinear rule of [`TextureCubes::sample`]).
+    fn diffuse_taps(&self, p: Vec3, points01: &mut Vec<Vec3>, weights: &mut Vec<f32>) {
+        let Some(res) = self.diffuse_lattice else {
+            points01.push(self.to_unit(p));
+            weights.push(1.0);
+            return;
+        };
+        let n = res as f32;
+        let g = ((p - self.bounds.min) / self.bounds.size() * n).clamp(Vec3::ZERO, Vec3::splat(n));
+        let base = g.as_uvec3().as_vec3().min(Vec3::splat(n - 1.0));
+        let f = g - base;
+        for corner in 0..8u32 {
+            let d = Vec3::new((corner & 1) as f32, (corner >> 1 & 1) as f32, (corner >> 2) as f32);
+            let w = Vec3::select(d.cmpeq(Vec3::ONE), f, Vec3::ONE - f);
+            points01.push((base + d) / n);
+            weights.push(w.x * w.y * w.z);
+        }
+    }
+
     /// The specular net's input for one ray.
     fn specular_input(&self, ray: &StudentRay, out: &mut [f32]) {
         let f = self.psh.features as usize;
@@ -505,8 +537,12 @@ impl Student {
         let n = rays.len();
         let (we, f) = (self.diffuse_grid.output_width(), self.psh.features as usize);
         let ws = f + SH_COEFFS + 1;
-        let points01: Vec<Vec3> = rays.iter().map(|r| self.to_unit(r.p_hit)).collect();
-        let mut enc = vec![0.0; n * we];
+        let taps = if self.diffuse_lattice.is_some() { 8 } else { 1 };
+        let (mut points01, mut tap_weights) = (Vec::with_capacity(n * taps), Vec::with_capacity(n * taps));
+        for r in rays {
+            self.diffuse_taps(r.p_hit, &mut points01, &mut tap_weights);
+        }
+        let mut enc = vec![0.0; n * taps * we];
         self.diffuse_grid.encode_batch(&points01, &mut enc);
         let mut xs = vec![0.0; n * ws];
         for (ray, x) in rays.iter().zip(xs.chunks_exact_mut(ws)) {
@@ -516,12 +552,19 @@ impl Student {
         self.diffuse_mlp.forward(&enc, &mut tape_d);
         self.specular_mlp.forward(&xs, &mut tape_s);
         let mut out = ChunkGradients::default();
-        let (mut d_od, mut d_os) = (vec![0.0; n * 4], vec![0.0; n * 4]);
+        let (mut d_od, mut d_os) = (vec![0.0; n * taps * 4], vec![0.0; n * 4]);
+        let diffuse_out: Vec<f32> = tape_d.output().iter().map(|&o| sigmoid(o)).collect();
         for (i, ray) in rays.iter().enumerate() {
-            let od = &tape_d.output()[4 * i..4 * i + 4];
+            // Diffuse colour and tint: the taps' sigmoid outputs, blended.
+            let mut blended = [0.0f32; 4];
+            for t in i * taps..(i + 1) * taps {
+                for (b, v) in blended.iter_mut().zip(&diffuse_out[4 * t..4 * t + 4]) {
+                    *b += tap_weights[t] * v;
+                }
+            }
             let os = &tape_s.output()[4 * i..4 * i + 4];
-            let c_d = Vec3::new(sigmoid(od[0]), sigmoid(od[1]), sigmoid(od[2]));
-            let tint = sigmoid(od[3]);
+            let c_d = Vec3::new(blended[0], blended[1], blended[2]);
+            let tint = blended[3];
             let c_s = Vec3::new(sigmoid(os[0]), sigmoid(os[1]), sigmoid(os[2]));
             let alpha = sigmoid(os[3]);
             let u = c_d + tint * c_s;
@@ -539,17 +582,23 @@ impl Student {
             let d_tint = d_c.dot(c_s);
             let d_cs = tint * d_c;
             let sig_d = |y: f32| y * (1.0 - y);
-            d_od[4 * i..4 * i + 4].copy_from_slice(&[d_c.x * sig_d(c_d.x), d_c.y * sig_d(c_d.y), d_c.z * sig_d(c_d.z), d_tint * sig_d(tint)]);
+            let d_blended = [d_c.x, d_c.y, d_c.z, d_tint];
+            for t in i * taps..(i + 1) * taps {
+                for ch in 0..4 {
+                    d_od[4 * t + ch] = tap_weights[t] * d_blended[ch] * sig_d(diffuse_out[4 * t + ch]);
+                }
+            }
             d_os[4 * i..4 * i + 4].copy_from_slice(&[d_cs.x * sig_d(c_s.x), d_cs.y * sig_d(c_s.y), d_cs.z * sig_d(c_s.z), d_alpha * sig_d(alpha)]);
         }
         if loss_scale.is_some() {
             out.diffuse_mlp = vec![0.0; self.diffuse_mlp.params().len()];
             out.specular_mlp = vec![0.0; self.specular_mlp.params().len()];
-            out.d_encoded = vec![0.0; n * we];
+            out.d_encoded = vec![0.0; n * taps * we];
             let mut d_xs = vec![0.0; n * ws];
             self.diffuse_mlp.backward(&enc, &tape_d, &d_od, &mut out.diffuse_mlp, Some(&mut out.d_encoded));
             self.specular_mlp.backward(&xs, &tape_s, &d_os, &mut out.specular_mlp, Some(&mut d_xs));
             out.d_features = d_xs.chunks_exact(ws).flat_map(|row| row[..f].iter().copied()).collect();
+            out.points01 = points01;
         }
         out
     }
@@ -567,14 +616,15 @@ impl Student {
         let mut outputs = Vec::with_capacity(rays.len());
         let mut d_encoded = Vec::with_capacity(rays.len() * self.diffuse_grid.output_width());
         let mut d_features = Vec::with_capacity(rays.len() * self.psh.features as usize);
+        let mut points01 = Vec::with_capacity(rays.len());
         for c in chunks {
+            points01.extend(c.points01);
             grads.diffuse_mlp.iter_mut().zip(&c.diffuse_mlp).for_each(|(g, d)| *g += d);
             grads.specular_mlp.iter_mut().zip(&c.specular_mlp).for_each(|(g, d)| *g += d);
             d_encoded.extend(c.d_encoded);
             d_features.extend(c.d_features);
             outputs.extend(c.outputs);
         }
-        let points01: Vec<Vec3> = rays.iter().map(|r| self.to_unit(r.p_hit)).collect();
         self.diffuse_grid.backward(&points01, &d_encoded, &mut grads.diffuse_grid);
         let f = self.psh.features as usize;
         for (ray, d) in rays.iter().zip(d_features.chunks_exact(f)) {
@@ -655,6 +705,9 @@ pub struct Geometry {
 /// Stage 2: fitted box, density cubes, hits of every training ray, PSH vertex set.
 pub fn geometry(teacher: &Trainer, data: &Dataset, cfg: &DistillConfig) -> Result<Geometry, String> {
     cfg.validate()?;
+    if data.images.iter().any(|im| im.width > u16::MAX as u32 + 1 || im.height > u16::MAX as u32 + 1) {
+        return Err("images wider or taller than 65536 pixels are not supported; use --downscale".into());
+    }
     let bounds = fit_bounds(teacher, data, cfg).ok_or("no training ray hits the field's density: nothing to model")?;
     let step = cfg.step(&bounds);
     let baked = bake_density(teacher, bounds, cfg);
@@ -766,9 +819,8 @@ impl Distiller {
         add_l2(self.student.diffuse_mlp.params(), &mut grads.diffuse_mlp, &self.student.diffuse_mlp.weight_ranges(), l2);
         add_l2(self.student.specular_mlp.params(), &mut grads.specular_mlp, &self.student.specular_mlp.weight_ranges(), l2);
         let factor = self.config.learning_rate_schedule.iter().rev().find(|(from, _)| self.step >= *from).map_or(1.0, |(_, f)| *f);
-        for (k, adam) in self.adam.iter_mut().enumerate() {
-            let group = if k == 2 { std::env::var("PSHLR").ok().and_then(|v| v.parse().ok()).unwrap_or(1.0) } else { 1.0 };
-            adam.config.learning_rate = self.config.adam.learning_rate * factor * group;
+        for adam in &mut self.adam {
+            adam.config.learning_rate = self.config.adam.learning_rate * factor;
         }
         let [a_grid, a_dmlp, a_psh, a_smlp] = &mut self.adam;
         a_grid.step(&mut self.student.diffuse_grid.params, &mut grads.diffuse_grid, true);
@@ -782,7 +834,7 @@ impl Distiller {
             *e = 0.9 * *e + 0.1 * (o.rgb_error + o.alpha_error).max(1e-6);
         }
         self.step += 1;
-        if self.step % 16 == 0 {
+        if self.step.is_multiple_of(16) {
             self.rebuild_cdf();
         }
         let n = outputs.len().max(1) as f64;

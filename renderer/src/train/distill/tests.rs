@@ -111,6 +111,8 @@ struct Pipeline {
     teacher_psnr: f64,
     asset: Asset,
     asset_psnr: f64,
+    /// The student before baking (diffuse from its net on the bake lattice).
+    mlp_psnr: f64,
     geometry_counts: (usize, usize, usize),
     first_psnr: f64,
     last_psnr: f64,
@@ -133,8 +135,6 @@ fn pipeline() -> &'static Pipeline {
             test.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render(im))).sum::<f64>() / test.images.len() as f64
         };
         let teacher_psnr = score(&|im| teacher.render_image(im, Vec3::ONE));
-        let teacher_train = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &teacher.render_image(im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
-        println!("teacher on train views {teacher_train:.2} dB");
         let cfg = DistillConfig::tiny(STUDENT_STEPS);
         let geometry = geometry(&teacher, &train, &cfg).unwrap();
         let geometry_counts = (geometry.density.brick_count(), geometry.hits.rays.len(), geometry.psh_vertices.len());
@@ -142,31 +142,8 @@ fn pipeline() -> &'static Pipeline {
         let mut distiller = Distiller::new(geometry, cfg).unwrap();
         let stats: Vec<DistillStats> = (0..STUDENT_STEPS).map(|_| distiller.train_step(&train)).collect();
         let mean = |s: &[DistillStats]| s.iter().map(|s| s.psnr()).sum::<f64>() / s.len() as f64;
-        {
-            let mut rng = SmallRng::seed_from_u64(1);
-            for white in [true, false] {
-                let rays: Vec<StudentRay> = distiller.hits.rays.iter().map(|h| {
-                    let im = &train.images[h.image as usize];
-                    let (_, dir) = im.ray(h.x_px as u32, h.y_px as u32);
-                    let [r, g, b, a] = im.pixel(h.x_px as u32, h.y_px as u32);
-                    let background = if white { Vec3::ONE } else { Vec3::new(rng.random(), rng.random(), rng.random()) };
-                    StudentRay { p_hit: h.p_hit, dir, alpha_c: h.alpha_c, rgb: Vec3::new(r, g, b), alpha: a, background }
-                }).collect();
-                let out = distiller.student.forward(&rays, 64);
-                let mse = out.iter().map(|o| o.rgb_error as f64).sum::<f64>() / (3 * out.len()) as f64;
-                let amse = out.iter().map(|o| o.alpha_error as f64).sum::<f64>() / out.len() as f64;
-                println!("all hits white={white}: {:.2} dB, alpha mse {amse:.5}", -10.0 * mse.log10());
-            }
-        }
         let asset = distiller.bake(density, step, "synthetic-mixed", serde_json::json!({ "test": true }));
         let asset_psnr = score(&|im| render_image(&asset, im, Vec3::ONE));
-        if let Ok(dir) = std::env::var("NEPHELE_DEBUG_DIR") {
-            for (i, im) in train.images.iter().take(3).enumerate() {
-                let truth = im.composite_over(Vec3::ONE);
-                crate::train::trainer::eval::write_comparison_png(&std::path::Path::new(&dir).join(format!("asset{i}.png")), &truth, &render_image(&asset, im, Vec3::ONE), im.width, im.height).unwrap();
-                crate::train::trainer::eval::write_comparison_png(&std::path::Path::new(&dir).join(format!("teacher{i}.png")), &truth, &teacher.render_image(im, Vec3::ONE), im.width, im.height).unwrap();
-            }
-        }
         let mlp_psnr = score(&|im| render_student_image(&distiller.student, &asset.density, step, asset.march.alpha_min, im, Vec3::ONE));
         let train_psnr = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render_image(&asset, im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
         println!(
@@ -174,7 +151,7 @@ fn pipeline() -> &'static Pipeline {
             mean(&stats[..30]),
             mean(&stats[stats.len() - 30..])
         );
-        Pipeline { teacher_psnr, asset_psnr, geometry_counts, first_psnr: mean(&stats[..30]), last_psnr: mean(&stats[stats.len() - 30..]), asset }
+        Pipeline { teacher_psnr, asset_psnr, mlp_psnr, geometry_counts, first_psnr: mean(&stats[..30]), last_psnr: mean(&stats[stats.len() - 30..]), asset }
     })
 }
 
@@ -186,11 +163,14 @@ fn distill_pipeline_makes_a_valid_asset_close_to_its_teacher() {
     let (bricks, hits, vertices) = p.geometry_counts;
     assert!(hits > 1000 && bricks > 0, "{:?}", p.geometry_counts);
     assert!(bricks < 16 * 16 * 16 / 3, "{bricks} density bricks");
-    assert!(vertices < 65usize.pow(3) / 4, "{vertices} PSH vertices");
+    assert!(vertices < 33usize.pow(3) / 2, "{vertices} PSH vertices");
     // The file round-trips and loads with every check.
     let bytes = p.asset.to_bytes().unwrap();
     assert_eq!(Asset::from_bytes(&bytes).unwrap(), p.asset);
-    // Held-out views: the asset is close to its teacher.
+    // Held-out views (measured: teacher 28.07 dB, asset 25.73 dB, unbaked student 25.73 dB;
+    // deterministic): baking changes nothing the student learned (it trained on the bake
+    // lattice; only f16 rounding is left), and the asset is close to its teacher.
+    assert!((p.asset_psnr - p.mlp_psnr).abs() < 0.05, "asset {:.3} dB, unbaked {:.3} dB", p.asset_psnr, p.mlp_psnr);
     assert!(p.teacher_psnr > 20.0, "teacher {:.2} dB", p.teacher_psnr);
     assert!(p.asset_psnr > p.teacher_psnr - 3.0 && p.asset_psnr > 20.0, "asset {:.2} dB vs teacher {:.2} dB", p.asset_psnr, p.teacher_psnr);
 }

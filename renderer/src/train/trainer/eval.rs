@@ -55,7 +55,7 @@ pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize, channels: usize) 
         return 1.0;
     }
     let mut size = SSIM_WINDOW.min(width).min(height);
-    if size % 2 == 0 {
+    if size.is_multiple_of(2) {
         size -= 1;
     }
     let taps = gaussian(size, SSIM_SIGMA);
