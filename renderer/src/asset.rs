@@ -405,6 +405,15 @@ pub struct MemoryReport {
     pub parts: Vec<MemoryPart>,
 }
 
+impl MemoryReport {
+    pub fn stored_bytes(&self) -> u64 {
+        self.parts.iter().map(|p| p.stored_bytes).sum()
+    }
+    pub fn dense_bytes(&self) -> u64 {
+        self.parts.iter().map(|p| p.dense_bytes).sum()
+    }
+}
+
 fn mib(b: u64) -> f64 {
     b as f64 / (1024.0 * 1024.0)
 }

@@ -124,6 +124,25 @@ impl TextureCubes {
         value: impl Fn(Vec3, &mut [f32]) + Sync,
     ) -> Self {
         use rayon::prelude::*;
+        let c = channels as usize;
+        Self::bake_batched(bounds, grid, brick, channels, occupied, |points| {
+            let mut out = vec![0.0; points.len() * c];
+            out.par_chunks_mut(c).zip(points.par_iter()).for_each(|(dst, &p)| value(p, dst));
+            out
+        })
+    }
+
+    /// As [`Self::bake`], with every corner evaluated in one call: `values(points)` returns
+    /// `channels` values per point, in order (for batched evaluators such as a network).
+    pub fn bake_batched(
+        bounds: Aabb,
+        grid: u32,
+        brick: u32,
+        channels: u32,
+        occupied: impl Fn(UVec3) -> bool + Sync,
+        values: impl FnOnce(&[Vec3]) -> Vec<f32>,
+    ) -> Self {
+        use rayon::prelude::*;
         let b = grid as usize;
         let cells: Vec<bool> = (0..b * b * b)
             .into_par_iter()
@@ -137,45 +156,51 @@ impl TextureCubes {
                 n += 1;
             }
         }
-        let e = brick as usize + 1;
-        let per_brick = e * e * e * channels as usize;
-        let mut values = vec![0.0f32; n as usize * per_brick];
-        let fine = Vec3::splat((grid * brick) as f32);
-        let occupied_cells: Vec<usize> = (0..b * b * b).filter(|&i| cells[i]).collect();
-        values.par_chunks_mut(per_brick).zip(occupied_cells.par_iter()).for_each(|(dst, &i)| {
+        let mut cubes = Self { bounds, grid, brick, channels, index, values: Vec::new() };
+        let points = cubes.corner_points();
+        let mut values = values(&points);
+        assert_eq!(values.len(), points.len() * channels as usize, "bake_batched: one value per corner and channel");
+        values.iter_mut().for_each(|v| *v = half::f16::from_f32(*v).to_f32());
+        cubes.values = values;
+        cubes
+    }
+
+    /// Object-space positions of the corners of every brick, in the order of
+    /// [`Self::values`] (brick by brick, corner x fastest).
+    pub fn corner_points(&self) -> Vec<Vec3> {
+        let b = self.grid as usize;
+        let e = self.brick as usize + 1;
+        let fine = Vec3::splat(self.fine_res() as f32);
+        let mut points = Vec::new();
+        let mut cells: Vec<(i32, usize)> = self.index.iter().enumerate().filter(|(_, k)| **k >= 0).map(|(i, &k)| (k, i)).collect();
+        cells.sort_unstable();
+        for (_, i) in cells {
             let cell = Vec3::new((i % b) as f32, ((i / b) % b) as f32, (i / (b * b)) as f32);
             for z in 0..e {
                 for y in 0..e {
                     for x in 0..e {
-                        let g = cell * brick as f32 + Vec3::new(x as f32, y as f32, z as f32);
-                        let p = bounds.min + g / fine * bounds.size();
-                        let at = (x + e * (y + e * z)) * channels as usize;
-                        let out = &mut dst[at..at + channels as usize];
-                        value(p, out);
-                        for v in out.iter_mut() {
-                            *v = half::f16::from_f32(*v).to_f32();
-                        }
+                        let g = cell * self.brick as f32 + Vec3::new(x as f32, y as f32, z as f32);
+                        points.push(self.bounds.min + g / fine * self.bounds.size());
                     }
                 }
             }
-        });
-        Self { bounds, grid, brick, channels, index, values }
+        }
+        points
     }
 
-    /// The same cubes with only the bricks of `cells` (index-grid coordinates; others and
-    /// cells without a brick are ignored), renumbered in index order.
-    pub fn retain_cells(&self, cells: &[UVec3]) -> Self {
-        let b = self.grid as usize;
-        let mut keep = vec![false; self.index.len()];
-        for c in cells.iter().filter(|c| c.max_element() < self.grid) {
-            keep[self.cell_index(*c)] = true;
-        }
+    /// The same cubes with only the bricks `keep(cell index, brick values)` accepts,
+    /// renumbered in index order.
+    pub fn retain(&self, keep: impl Fn(usize, &[f32]) -> bool) -> Self {
         let per_brick = self.brick_corners() * self.channels as usize;
-        let mut out = Self { index: vec![-1; b * b * b], values: Vec::new(), ..self.clone() };
+        let mut out = Self { index: vec![-1; self.index.len()], values: Vec::new(), ..self.clone() };
         for (i, &brick) in self.index.iter().enumerate() {
-            if brick >= 0 && keep[i] {
+            if brick < 0 {
+                continue;
+            }
+            let values = &self.values[brick as usize * per_brick..(brick as usize + 1) * per_brick];
+            if keep(i, values) {
                 out.index[i] = (out.values.len() / per_brick) as i32;
-                out.values.extend_from_slice(&self.values[brick as usize * per_brick..(brick as usize + 1) * per_brick]);
+                out.values.extend_from_slice(values);
             }
         }
         out
@@ -224,11 +249,16 @@ mod tests {
     }
 
     #[test]
-    fn retaining_cells_keeps_their_values() {
+    fn retaining_bricks_keeps_their_values() {
         let cubes = linear_cubes();
-        let kept = cubes.retain_cells(&[UVec3::new(1, 2, 3), UVec3::new(0, 0, 0), UVec3::new(9, 9, 9)]);
-        // (0, 0, 0) had no brick; (9, 9, 9) is outside the grid.
+        let wanted = [cubes.cell_index(UVec3::new(1, 2, 3)), cubes.cell_index(UVec3::new(0, 0, 0))];
+        let kept = cubes.retain(|i, _| wanted.contains(&i));
+        // (0, 0, 0) had no brick.
         assert_eq!(kept.brick_count(), 1);
+        // A predicate on the values: bricks whose field exceeds 3 somewhere (x + y/2 − z/4 > 1).
+        let high = cubes.retain(|_, v| v.iter().any(|&x| x > 3.0));
+        assert!(high.brick_count() > 0 && high.brick_count() < cubes.brick_count());
+        assert!(high.values.chunks(high.brick_corners()).all(|b| b.iter().any(|&x| x > 3.0)));
         let p = Vec3::new(-0.3, 0.2, 0.7); // in cell (1, 2, 3)
         assert_eq!(kept.sample::<1>(p), cubes.sample::<1>(p));
         assert_eq!(kept.sample::<1>(Vec3::new(0.6, 0.6, 0.6)), [0.0]);

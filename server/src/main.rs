@@ -110,63 +110,9 @@ enum Command {
         #[arg(long)]
         load: bool,
     },
-    /// Train the i-NGP stage on a posed-image dataset (CPU), with checkpoints in --out.
-    Train {
-        /// NeRF-synthetic folder or instant-ngp transforms.json / folder.
-        dataset: PathBuf,
-        /// The asset to write (A.nolf); with `--until ngp`, any path (the work directory).
-        #[arg(long)]
-        out: PathBuf,
-        /// Checkpoints of the stages (default: the asset path with .train).
-        #[arg(long)]
-        work: Option<PathBuf>,
-        /// tiny, fast, default or quality.
-        #[arg(long, default_value = "default")]
-        preset: String,
-        /// Steps of the i-NGP stage (default: tiny 500, fast 2000, default 6000, quality 20000).
-        #[arg(long)]
-        steps: Option<u64>,
-        /// Steps of the i-NOLF appearance stage (default: tiny 300, fast 1000, default 2000,
-        /// quality 6000).
-        #[arg(long)]
-        nolf_steps: Option<u64>,
-        /// Stop after the i-NGP stage, or go on to the asset.
-        #[arg(long, value_enum, default_value = "asset")]
-        until: nephele::train_cli::Until,
-        /// Stop this run when the i-NGP stage reaches step N (checkpointed; continue with
-        /// --resume and the same --steps, which also set the learning-rate schedule).
-        #[arg(long)]
-        stop_at_step: Option<u64>,
-        /// Shrink images by 1, 2, 4 or 8.
-        #[arg(long, default_value_t = 1)]
-        downscale: u32,
-        /// Train on all views but every N-th of the train file (eval then uses
-        /// `--split test --holdout-every N`).
-        #[arg(long)]
-        holdout_every: Option<usize>,
-        /// Continue from the work directory's checkpoints (same preset and seed); finished
-        /// stages are skipped.
-        #[arg(long)]
-        resume: bool,
-        /// Write the i-NGP checkpoint every N steps (and at the end).
-        #[arg(long, default_value_t = 500)]
-        checkpoint_every: u64,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Print a JSON summary.
-        #[arg(long)]
-        json: bool,
-        /// Without a terminal (no progress bar), log progress every N steps.
-        #[arg(long, default_value_t = 100)]
-        log_every: u64,
-        /// Score i-NGP and the asset on up to N held-out views for the asset's provenance.
-        #[arg(long, default_value_t = 10)]
-        eval_views: usize,
-        /// JSON object overriding i-NOLF settings of the preset, e.g.
-        /// '{"psh_grid": 256, "diffuse_dilation": 1}' (an unknown name lists the known ones).
-        #[arg(long)]
-        nolf_config: Option<String>,
-    },
+    /// Train an asset from a posed-image dataset on the CPU: the i-NGP field, then the i-NOLF
+    /// stages, checkpointed in the work directory.
+    Train(nephele::train_cli::TrainOptions),
     /// Render every view of a dataset split with an asset (.nolf) or an i-NGP checkpoint over
     /// white; print per-view and mean PSNR / SSIM, optionally write ground truth | render |
     /// |error|×4 PNGs.
@@ -475,47 +421,7 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
-        Some(Command::Train {
-            dataset,
-            out,
-            work,
-            preset,
-            steps,
-            nolf_steps,
-            until,
-            stop_at_step,
-            downscale,
-            holdout_every,
-            resume,
-            checkpoint_every,
-            seed,
-            json,
-            log_every,
-            eval_views,
-            nolf_config,
-        }) => {
-            use nephele::train_cli::{TrainOptions, train};
-            let opts = TrainOptions {
-                dataset,
-                out,
-                work,
-                preset,
-                steps,
-                nolf_steps,
-                until,
-                stop_at_step,
-                downscale,
-                holdout_every,
-                resume,
-                checkpoint_every,
-                seed,
-                json,
-                log_every,
-                eval_views,
-                nolf_config,
-            };
-            train(&opts).map(|_| ())
-        }
+        Some(Command::Train(opts)) => nephele::train_cli::train(&opts).map(|_| ()),
         Some(Command::Eval { checkpoint, dataset, split, downscale, holdout_every, out, json }) => {
             use nephele::train_cli::{EvalOptions, eval};
             let split = split.parse().map_err(anyhow::Error::msg)?;

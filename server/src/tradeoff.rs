@@ -26,7 +26,7 @@ use std::{
 
 use anyhow::{Context, Result, bail};
 use glam::{DVec3, Vec3};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use serde::Serialize;
 
 use nephele_renderer::{
@@ -120,7 +120,7 @@ fn view_rays(view: &View) -> Vec<(Vec3, Vec3)> {
 }
 
 fn asset_memory(asset: &Asset) -> (u64, u64) {
-    let stored = asset.density.stored_bytes() + asset.diffuse.stored_bytes() + asset.psh.stored_bytes() + f32_bytes(asset.mlp.parameter_count());
+    let stored = asset.memory().stored_bytes();
     // The CPU keeps f16 values as f32 and a transposed copy of the MLP.
     let extra = 2 * (asset.density.values.len() + asset.diffuse.values.len() + asset.psh.values.len()) as u64
         + f32_bytes(asset.mlp.w0.len() + asset.mlp.w1.len() + asset.mlp.w2.len());
@@ -132,10 +132,7 @@ fn student_memory(s: &Student) -> u64 {
 }
 
 fn bar(prefix: &'static str, len: u64) -> ProgressBar {
-    let b = ProgressBar::new(len);
-    b.set_style(ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} (ETA {eta})").unwrap_or_else(|_| ProgressStyle::default_bar()));
-    b.set_prefix(prefix);
-    b
+    crate::train_cli::progress_bar(prefix, len, 0)
 }
 
 /// Median wall time of `runs` calls (one if a call takes over 2 s).

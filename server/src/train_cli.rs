@@ -36,38 +36,61 @@ pub enum Until {
     Asset,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, clap::Args)]
 pub struct TrainOptions {
+    /// NeRF-synthetic folder or instant-ngp transforms.json / folder.
     pub dataset: PathBuf,
-    /// The asset to write (`.nolf`).
+    /// The asset to write (A.nolf); with `--until ngp`, any path (the work directory).
+    #[arg(long)]
     pub out: PathBuf,
-    /// Checkpoints go here (default: the asset path with `.train` for `.nolf`).
+    /// Checkpoints of the stages (default: the asset path with .train).
+    #[arg(long)]
     pub work: Option<PathBuf>,
     /// tiny, fast, default or quality.
+    #[arg(long, default_value = "default")]
     pub preset: String,
-    /// Steps of the i-NGP stage (None: the preset's).
+    /// Steps of the i-NGP stage (default: tiny 500, fast 2000, default 6000, quality 20000).
+    #[arg(long)]
     pub steps: Option<u64>,
-    /// Steps of the i-NOLF appearance stage (None: the preset's).
+    /// Steps of the i-NOLF appearance stage (default: tiny 300, fast 1000, default 2000,
+    /// quality 6000).
+    #[arg(long)]
     pub nolf_steps: Option<u64>,
+    /// Stop after the i-NGP stage, or go on to the asset.
+    #[arg(long, value_enum, default_value = "asset")]
     pub until: Until,
-    /// Stop this run once the i-NGP stage reaches this step (continue later with `resume`).
+    /// Stop this run when the i-NGP stage reaches step N (checkpointed; continue with
+    /// --resume and the same --steps, which also set the learning-rate schedule).
+    #[arg(long)]
     pub stop_at_step: Option<u64>,
+    /// Shrink images by 1, 2, 4 or 8.
+    #[arg(long, default_value_t = 1)]
     pub downscale: u32,
-    /// Hold out every n-th view of the train file (for a test split of our own).
+    /// Train on all views but every N-th of the train file (eval then uses
+    /// `--split test --holdout-every N`).
+    #[arg(long)]
     pub holdout_every: Option<usize>,
+    /// Continue from the work directory's checkpoints (same preset and seed); finished
+    /// stages are skipped.
+    #[arg(long)]
     pub resume: bool,
-    /// Write the i-NGP checkpoint every this many steps (and at the end).
+    /// Write the i-NGP checkpoint every N steps (and at the end).
+    #[arg(long, default_value_t = 500)]
     pub checkpoint_every: u64,
+    #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Print a JSON summary on stdout instead of text.
+    /// Print a JSON summary.
+    #[arg(long)]
     pub json: bool,
-    /// When the progress bar is not shown (stderr not a terminal), log a line to stderr
-    /// every this many steps (0: never).
+    /// Without a terminal (no progress bar), log progress every N steps.
+    #[arg(long, default_value_t = 100)]
     pub log_every: u64,
-    /// Held-out views scored for the asset's provenance (0: none).
+    /// Score i-NGP and the asset on up to N held-out views for the asset's provenance.
+    #[arg(long, default_value_t = 10)]
     pub eval_views: usize,
-    /// JSON object overriding fields of the preset's i-NOLF settings
-    /// ([`DistillConfig`]), e.g. `{"psh_grid": 256}`.
+    /// JSON object overriding i-NOLF settings of the preset, e.g.
+    /// '{"psh_grid": 256, "diffuse_dilation": 1}' (an unknown name lists the known ones).
+    #[arg(long)]
     pub nolf_config: Option<String>,
 }
 
@@ -170,7 +193,7 @@ fn bar_style(template: &str) -> ProgressStyle {
     ProgressStyle::with_template(template).map(|s| s.progress_chars("=> ")).unwrap_or_else(|_| ProgressStyle::default_bar())
 }
 
-fn progress_bar(prefix: &'static str, total: u64, start: u64) -> ProgressBar {
+pub fn progress_bar(prefix: &'static str, total: u64, start: u64) -> ProgressBar {
     let bar = ProgressBar::new(total);
     bar.set_style(bar_style("{prefix} [{bar:30}] {pos}/{len} {msg} (ETA {eta})"));
     bar.set_prefix(prefix);
@@ -461,8 +484,8 @@ fn train_nolf(opts: &TrainOptions, teacher: &Trainer, cfg: DistillConfig, data: 
     asset.validate().context("the baked asset fails its own checks")?;
     bar.finish_and_clear();
     let psh_entries = asset.psh.len();
-    let asset_bytes = asset.density.stored_bytes() + asset.diffuse.stored_bytes() + asset.psh.stored_bytes();
-    let dense_equivalent_bytes = asset.density.dense_bytes() + asset.diffuse.dense_bytes() + asset.psh.dense_bytes();
+    let memory = asset.memory();
+    let (asset_bytes, dense_equivalent_bytes) = (memory.stored_bytes(), memory.dense_bytes());
     let summary = NolfSummary {
         bounds: [bounds.min.to_array(), bounds.max.to_array()],
         step,

@@ -36,7 +36,7 @@ use super::{
     adam::{Adam, AdamConfig, add_l2},
     hash_grid::{HashGrid, HashGridConfig},
     mlp::{Mlp, MlpTape},
-    trainer::Trainer,
+    trainer::{Trainer, mix},
 };
 use crate::{
     asset::{Asset, MarchMeta},
@@ -242,37 +242,13 @@ pub fn bake_density(teacher: &Trainer, bounds: Aabb, cfg: &DistillConfig) -> Tex
             teacher.occupancy.is_occupied(lo + f * cell_size)
         })
     };
-    // Bake every candidate brick with the teacher's σ evaluated in one batch, then drop the
-    // ones that stay transparent.
-    let candidates = TextureCubes::bake(bounds, b, cfg.density_brick, 1, occupied, |_, out| out[0] = 0.0);
-    let e = cfg.density_brick as usize + 1;
-    let fine = Vec3::splat((b * cfg.density_brick) as f32);
-    let mut points = Vec::with_capacity(candidates.values.len());
-    let cells: Vec<usize> = (0..candidates.index.len()).filter(|&i| candidates.index[i] >= 0).collect();
-    for &i in &cells {
-        let bu = b as usize;
-        let cell = Vec3::new((i % bu) as f32, (i / bu % bu) as f32, (i / (bu * bu)) as f32);
-        for z in 0..e {
-            for y in 0..e {
-                for x in 0..e {
-                    let g = cell * cfg.density_brick as f32 + Vec3::new(x as f32, y as f32, z as f32);
-                    points.push(bounds.min + g / fine * bounds.size());
-                }
-            }
-        }
-    }
-    let sigma = teacher_sigma(teacher, &points);
-    let step = cfg.step(&bounds);
-    let sigma_min = -(1.0 - cfg.min_step_opacity).ln() / step;
-    let per_brick = e * e * e;
-    let mut out = TextureCubes { values: Vec::new(), index: vec![-1; candidates.index.len()], ..candidates };
-    for (&cell, brick) in cells.iter().zip(sigma.chunks_exact(per_brick)) {
-        if brick.iter().any(|&s| s >= sigma_min) {
-            out.index[cell] = (out.values.len() / per_brick) as i32;
-            out.values.extend(brick.iter().map(|&s| half::f16::from_f32(s.min(65504.0)).to_f32()));
-        }
-    }
-    out
+    // Every candidate brick with the teacher's σ evaluated in one batch, then drop the ones
+    // that stay transparent.
+    let candidates = TextureCubes::bake_batched(bounds, b, cfg.density_brick, 1, occupied, |points| {
+        teacher_sigma(teacher, points).into_iter().map(|s| s.min(65504.0)).collect()
+    });
+    let sigma_min = -(1.0 - cfg.min_step_opacity).ln() / cfg.step(&bounds);
+    candidates.retain(|_, sigma| sigma.iter().any(|&s| s >= sigma_min))
 }
 
 /// One training ray that hits the density cubes.
@@ -397,6 +373,15 @@ fn marked_cells(bounds: &Aabb, n: u32, extra: u32, points: impl Iterator<Item = 
         }
     }
     out
+}
+
+/// `cells` of `cubes`' index grid as a mask over its cell indices.
+fn cell_mask(cubes: &TextureCubes, cells: &[UVec3]) -> Vec<bool> {
+    let mut mask = vec![false; cubes.index.len()];
+    for &c in cells.iter().filter(|c| c.max_element() < cubes.grid) {
+        mask[cubes.cell_index(c)] = true;
+    }
+    mask
 }
 
 /// The nets of stage 3.
@@ -685,13 +670,6 @@ impl DistillStats {
     }
 }
 
-fn mix(seed: u64, a: u64, b: u64) -> u64 {
-    let mut x = seed ^ a.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ b.wrapping_mul(0xc2b2_ae3d_27d4_eb4f);
-    x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    x ^ (x >> 31)
-}
-
 /// What the geometry stage made, with counts for the log.
 #[derive(Debug, Clone)]
 pub struct Geometry {
@@ -714,8 +692,8 @@ pub fn geometry(teacher: &Trainer, data: &Dataset, cfg: &DistillConfig) -> Resul
     let first = march_rays(&baked, step, cfg.alpha_min, data, cfg.error_tile);
     // Keep only bricks near surfaces the cameras reach, then march again with exactly the
     // cubes that will be stored.
-    let near = marked_cells(&bounds, cfg.density_grid, 0, first.rays.iter().map(|h| h.p_hit), cfg.density_dilation);
-    let density = baked.retain_cells(&near);
+    let near = cell_mask(&baked, &marked_cells(&bounds, cfg.density_grid, 0, first.rays.iter().map(|h| h.p_hit), cfg.density_dilation));
+    let density = baked.retain(|i, _| near[i]);
     let hits = march_rays(&density, step, cfg.alpha_min, data, cfg.error_tile);
     if hits.rays.is_empty() {
         return Err("no training ray hits the baked density: nothing to model".into());
@@ -857,24 +835,9 @@ impl Distiller {
         for c in &cells {
             wanted[c.x as usize + g * (c.y as usize + g * c.z as usize)] = true;
         }
-        // Evaluate the diffuse net once for all corners of all wanted bricks.
-        let skeleton = TextureCubes::bake(bounds, cfg.diffuse_grid, cfg.diffuse_brick, 1, |c| wanted[c.x as usize + g * (c.y as usize + g * c.z as usize)], |_, o| o[0] = 0.0);
-        let e = cfg.diffuse_brick as usize + 1;
-        let fine = Vec3::splat((cfg.diffuse_grid * cfg.diffuse_brick) as f32);
-        let mut points = Vec::new();
-        for i in (0..skeleton.index.len()).filter(|&i| skeleton.index[i] >= 0) {
-            let cell = Vec3::new((i % g) as f32, (i / g % g) as f32, (i / (g * g)) as f32);
-            for z in 0..e {
-                for y in 0..e {
-                    for x in 0..e {
-                        let p = cell * cfg.diffuse_brick as f32 + Vec3::new(x as f32, y as f32, z as f32);
-                        points.push(bounds.min + p / fine * bounds.size());
-                    }
-                }
-            }
-        }
-        let values = s.diffuse(&points).into_iter().map(|v| half::f16::from_f32(v).to_f32()).collect();
-        let diffuse = TextureCubes { channels: 4, values, ..skeleton };
+        // The diffuse net, evaluated once for all corners of all wanted bricks.
+        let occupied = |c: UVec3| wanted[c.x as usize + g * (c.y as usize + g * c.z as usize)];
+        let diffuse = TextureCubes::bake_batched(bounds, cfg.diffuse_grid, cfg.diffuse_brick, 4, occupied, |points| s.diffuse(points));
         let mut psh = s.psh.clone();
         psh.values.iter_mut().for_each(|v| *v = half::f16::from_f32(*v).to_f32());
         Asset {
@@ -973,25 +936,6 @@ pub fn render_image(asset: &Asset, image: &crate::dataset::DatasetImage, backgro
             let rgb = if m.alpha_c < asset.march.alpha_min { background } else { model::shade(asset, &net, o + m.t_hit * d, d, m.alpha_c, background).0 };
             rgb.to_array()
         })
-        .collect()
-}
-
-/// Renders a dataset view with the student before baking (diffuse from its MLP, the
-/// "+ diffuse MLP" variant): hit points from `density` as in [`render_image`].
-pub fn render_student_image(student: &Student, density: &TextureCubes, step: f32, alpha_min: f32, image: &crate::dataset::DatasetImage, background: Vec3) -> Vec<f32> {
-    let settings = RenderSettings::default();
-    let rays: Vec<(Vec3, Vec3)> = image.rays().collect();
-    let marched: Vec<model::MarchHit> = rays.par_iter().map(|&(o, d)| model::march(density, o, d, step, &settings)).collect();
-    let hit_rays: Vec<StudentRay> = rays
-        .iter()
-        .zip(&marched)
-        .filter(|(_, m)| m.alpha_c >= alpha_min)
-        .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background })
-        .collect();
-    let mut shaded = student.forward(&hit_rays, 256).into_iter();
-    marched
-        .iter()
-        .flat_map(|m| if m.alpha_c >= alpha_min { shaded.next().map_or(background, |o| o.pixel) } else { background }.to_array())
         .collect()
 }
 

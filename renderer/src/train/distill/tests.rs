@@ -144,7 +144,10 @@ fn pipeline() -> &'static Pipeline {
         let mean = |s: &[DistillStats]| s.iter().map(|s| s.psnr()).sum::<f64>() / s.len() as f64;
         let asset = distiller.bake(density, step, "synthetic-mixed", serde_json::json!({ "test": true }));
         let asset_psnr = score(&|im| render_image(&asset, im, Vec3::ONE));
-        let mlp_psnr = score(&|im| render_student_image(&distiller.student, &asset.density, step, asset.march.alpha_min, im, Vec3::ONE));
+        let mlp_psnr = score(&|im| {
+            let rays: Vec<(Vec3, Vec3)> = im.rays().collect();
+            crate::train::variants::render_cubes_mlp(&distiller.student, &asset.density, step, asset.march.alpha_min, &rays, Vec3::ONE).rgb
+        });
         let train_psnr = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render_image(&asset, im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
         println!(
             "teacher {teacher_psnr:.2} dB, asset {asset_psnr:.2} dB (diffuse MLP {mlp_psnr:.2} dB; train views {train_psnr:.2} dB), batch {:.2} → {:.2} dB, counts {geometry_counts:?}",
