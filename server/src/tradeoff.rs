@@ -2,17 +2,24 @@
 //! its distance sweep (Fig. 14), measured here, side by side in one run on one backend (the
 //! CPU: the only one every variant has) and one size.
 //!
-//! From one trained i-NGP checkpoint (the teacher) it builds the geometry once, trains a
-//! student per PSH size, and then, for each variant, scores held-out views (PSNR / SSIM over
-//! white at the dataset's size) and times frames at the benchmark size:
+//! From one trained i-NGP checkpoint (the teacher) it builds the geometry once, trains the
+//! students the rows need (same steps and settings otherwise), and then, for each row, scores
+//! held-out views (PSNR / SSIM over white at the dataset's size) and times frames at the
+//! benchmark size. Each row of the paper's ablation changes one thing:
 //!
-//! | variant | hit point | diffuse | E_s |
-//! |---|---|---|---|
-//! | i-NGP | volume rendering of the field | — | — |
-//! | i-NOLF base | density network | MLP | PSH 256 |
-//! | + density cubes | cubes | MLP | PSH 256 |
-//! | + diffuse cubes (the asset) | cubes | cubes | PSH 256 |
-//! | PSH 128 / 512 | cubes | cubes | PSH 128 / 512 |
+//! | row | hit point | diffuse | E_s | student |
+//! |---|---|---|---|---|
+//! | i-NGP | volume rendering of the field | — | — | — |
+//! | i-NOLF base | density network | none (one colour net) | hash grid | A |
+//! | + density cubes | cubes | none | hash grid | A |
+//! | + diffuse MLP | cubes | net at the hit | hash grid | B |
+//! | + diffuse cubes | cubes | B's net baked | hash grid | B |
+//! | + PSH 256 | cubes | cubes | PSH 256 | C |
+//! | + trained on the bake lattice (the asset) | cubes | cubes | PSH 256 | D |
+//! | PSH 128 / 512 | cubes | cubes | PSH N | D at N |
+//!
+//! The hash grid is the teacher's own encoding (i-NGP's); "trained on the bake lattice" is
+//! what `nephele train` does (see [`distill`]).
 //!
 //! The distance sweep renders an orbit view from far to filling the screen with i-NGP and
 //! the asset and plots ms/frame to a PNG.
@@ -32,7 +39,8 @@ use serde::Serialize;
 use nephele_renderer::{
     Asset, Backend, CpuBackend, Intrinsics, RenderSettings, View, ViewRequest,
     gpu::{GpuBackend, ngp::GpuNgp},
-    dataset::{Dataset, DatasetImage, LoadOptions, Split},
+    cubes::TextureCubes,
+    dataset::{Dataset, LoadOptions, Split},
     train::{
         Trainer,
         distill::{self, DistillConfig, Distiller, Geometry, Student},
@@ -127,8 +135,9 @@ fn asset_memory(asset: &Asset) -> (u64, u64) {
     (stored, extra)
 }
 
-fn student_memory(s: &Student) -> u64 {
-    f32_bytes(s.diffuse_grid.params.len() + s.diffuse_mlp.params().len() + s.specular_mlp.params().len()) + s.psh.stored_bytes()
+/// Bytes of the specular net and its encoding (what a student needs beside its diffuse).
+fn specular_bytes(s: &Student) -> u64 {
+    s.encoding.stored_bytes() + f32_bytes(s.specular_mlp.params().len())
 }
 
 fn bar(prefix: &'static str, len: u64) -> ProgressBar {
@@ -151,9 +160,50 @@ fn timed<T>(runs: usize, mut f: impl FnMut() -> T) -> (T, f64) {
     (last, times[times.len() / 2])
 }
 
+/// How a row of the table finds hits and shades them.
+enum Shading<'a> {
+    Ngp,
+    /// Hits from the teacher's density network.
+    Base(&'a Student),
+    /// Hits from the density cubes; diffuse from the student's net or from baked cubes.
+    Cubes(&'a Student, Option<&'a TextureCubes>),
+    /// The baked asset on the CPU backend.
+    Asset(Arc<Asset>),
+}
+
+struct Variant<'a> {
+    name: String,
+    shading: Shading<'a>,
+    model_bytes: u64,
+    runtime_extra_bytes: u64,
+}
+
+/// One trained student of the table.
+struct Trained {
+    label: String,
+    distiller: Distiller,
+}
+
+fn train_student(label: &str, cfg: DistillConfig, geometry: &Geometry, data: &Dataset) -> Result<Trained> {
+    let steps = cfg.steps;
+    let mut d = Distiller::new(geometry.with_psh_grid(cfg.psh_grid, cfg.psh_dilation), cfg).context("building the PSH")?;
+    let b = bar("nolf", steps);
+    b.set_message(label.to_string());
+    let t = Instant::now();
+    let mut last = 0.0;
+    while d.step < steps {
+        last = d.train_step(data).psnr();
+        b.set_position(d.step);
+        b.set_message(format!("{label}: batch PSNR {last:.2} dB"));
+    }
+    b.finish_and_clear();
+    eprintln!("{label}: {steps} steps in {:.0} s, last batch PSNR {last:.2} dB, {:.2} MB of parameters", t.elapsed().as_secs_f64(), d.student.stored_bytes() as f64 / 1048576.0);
+    Ok(Trained { label: label.to_string(), distiller: d })
+}
+
 pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     if opts.psh_grids.is_empty() || !opts.psh_grids.contains(&256) {
-        bail!("--psh must include 256 (the grid of the base and cube variants)");
+        bail!("--psh must include 256 (the grid of the ablation rows)");
     }
     let (teacher, _) = Trainer::load_checkpoint(&opts.teacher, None).with_context(|| format!("loading {}", opts.teacher.display()))?;
     let load = |split| LoadOptions { split, downscale: opts.downscale, holdout_every: opts.holdout_every, max_images: None };
@@ -163,61 +213,99 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
     eprintln!("teacher step {}; {} train and {} held-out views", teacher.step, train.images.len(), test.images.len());
 
-    let base_cfg = DistillConfig::default_for(opts.nolf_steps);
+    let base_cfg = DistillConfig { psh_grid: 256, ..DistillConfig::default_for(opts.nolf_steps) };
     let t = Instant::now();
     let geometry: Geometry = distill::geometry(&teacher, &train, &base_cfg).map_err(anyhow::Error::msg)?;
     eprintln!("geometry: {} density bricks, {} hits in {:.1} s", geometry.density.brick_count(), geometry.hits.rays.len(), t.elapsed().as_secs_f64());
-    // One student per PSH size.
-    let mut students: Vec<(u32, Distiller, Arc<Asset>)> = Vec::new();
-    for &n in &opts.psh_grids {
-        let cfg = DistillConfig { psh_grid: n, ..base_cfg.clone() };
-        let mut d = Distiller::new(geometry.with_psh_grid(n, cfg.psh_dilation), cfg).context("building the PSH")?;
-        let b = bar("nolf", opts.nolf_steps);
-        b.set_message(format!("PSH {n}"));
-        while d.step < opts.nolf_steps {
-            let s = d.train_step(&train);
-            b.set_position(d.step);
-            b.set_message(format!("PSH {n}: batch PSNR {:.2} dB", s.psnr()));
-        }
-        b.finish_and_clear();
-        let asset = Arc::new(d.bake(geometry.density.clone(), geometry.step, &train.name, serde_json::json!({ "bench": "tradeoff", "psh": n })));
-        eprintln!("PSH {n}: {} entries, asset {} bytes", asset.psh.len(), asset.to_bytes()?.len());
-        students.push((n, d, asset));
+
+    // The students: each ablation step of the paper changes one thing, in its order; then
+    // this pipeline's addition (the diffuse net trained on its bake lattice) and the PSH sizes.
+    // E_s as a hash grid uses the teacher's own encoding (i-NGP's multi-resolution grid).
+    let grid = Some(teacher.config.field.grid);
+    let at_hit = DistillConfig { train_on_bake_lattice: false, ..base_cfg.clone() };
+    let plain = train_student("hash-grid E_s, no diffuse net", DistillConfig { diffuse_net: false, specular_hash_grid: grid, ..at_hit.clone() }, &geometry, &train)?;
+    let split = train_student("hash-grid E_s, diffuse net", DistillConfig { specular_hash_grid: grid, ..at_hit.clone() }, &geometry, &train)?;
+    let psh_at_hit = train_student("PSH 256, diffuse net at the hit", at_hit, &geometry, &train)?;
+    let mut sized = Vec::new();
+    let mut grids = opts.psh_grids.clone();
+    grids.sort_by_key(|&n| (n != 256, n));
+    for n in grids {
+        sized.push(train_student(&format!("PSH {n}, diffuse net on its bake lattice"), DistillConfig { psh_grid: n, ..base_cfg.clone() }, &geometry, &train)?);
     }
+    let split_diffuse = split.distiller.bake_diffuse();
+    let bake = |s: &Trained| -> Result<Arc<Asset>> {
+        let asset = s.distiller.bake(geometry.density.clone(), geometry.step, &train.name, serde_json::json!({ "bench": "tradeoff", "student": s.label })).map_err(anyhow::Error::msg)?;
+        Ok(Arc::new(asset))
+    };
     let (alpha_min, step) = (base_cfg.alpha_min, geometry.step);
-    // The asset (PSH 256) right after the cube variants, then the other PSH sizes.
-    students.sort_by_key(|s| (s.0 != 256, s.0));
-    let main = students.iter().find(|s| s.0 == 256).expect("checked above");
-    let backend = CpuBackend;
+
+    let ngp_model = f32_bytes(teacher.field.parameter_count());
+    let ngp_extra = teacher.occupancy.cell_count() as u64 * 4 + teacher.occupancy.cell_count() as u64 / 8 + f32_bytes(teacher.field.density_mlp.params().len() + teacher.field.colour_mlp.params().len());
+    let density_stored = geometry.density.stored_bytes();
+    let density_extra = 2 * geometry.density.values.len() as u64;
+    let mut variants = vec![
+        Variant { name: "i-NGP".into(), shading: Shading::Ngp, model_bytes: ngp_model, runtime_extra_bytes: ngp_extra },
+        Variant {
+            name: "i-NOLF base (density network; hash-grid E_s, no diffuse net)".into(),
+            shading: Shading::Base(&plain.distiller.student),
+            model_bytes: ngp_model + plain.distiller.student.stored_bytes(),
+            runtime_extra_bytes: ngp_extra,
+        },
+        Variant {
+            name: "+ density cubes".into(),
+            shading: Shading::Cubes(&plain.distiller.student, None),
+            model_bytes: density_stored + plain.distiller.student.stored_bytes(),
+            runtime_extra_bytes: density_extra,
+        },
+        Variant {
+            name: "+ diffuse MLP".into(),
+            shading: Shading::Cubes(&split.distiller.student, None),
+            model_bytes: density_stored + split.distiller.student.stored_bytes(),
+            runtime_extra_bytes: density_extra,
+        },
+        Variant {
+            name: "+ diffuse cubes".into(),
+            shading: Shading::Cubes(&split.distiller.student, Some(&split_diffuse)),
+            model_bytes: density_stored + split_diffuse.stored_bytes() + specular_bytes(&split.distiller.student),
+            runtime_extra_bytes: density_extra + 2 * split_diffuse.values.len() as u64,
+        },
+    ];
+    let mut asset_row = |name: String, asset: Arc<Asset>| {
+        let (model_bytes, runtime_extra_bytes) = asset_memory(&asset);
+        variants.push(Variant { name, shading: Shading::Asset(asset), model_bytes, runtime_extra_bytes });
+    };
+    asset_row("+ PSH 256 (an asset)".into(), bake(&psh_at_hit)?);
+    let main = bake(&sized[0])?;
+    asset_row("+ diffuse net trained on its bake lattice, PSH 256 (the asset)".into(), main.clone());
+    for s in &sized[1..] {
+        asset_row(format!("PSH {} (the asset at another N)", s.distiller.config.psh_grid), bake(s)?);
+    }
+    let render = |v: &Variant<'_>, rays: &[(Vec3, Vec3)]| -> VariantFrame {
+        match &v.shading {
+            Shading::Ngp => variants::render_ngp(&teacher, rays, Vec3::ONE),
+            Shading::Base(s) => variants::render_base(&teacher, s, step, alpha_min, rays, Vec3::ONE),
+            Shading::Cubes(s, diffuse) => variants::render_cubes(s, &geometry.density, *diffuse, step, alpha_min, rays, Vec3::ONE),
+            Shading::Asset(_) => unreachable!("assets render on the backend"),
+        }
+    };
 
     // Quality on held-out views.
-    type Render<'a> = Box<dyn Fn(&DatasetImage) -> Vec<f32> + 'a>;
-    let mut quality: Vec<(String, Render<'_>)> = vec![
-        ("i-NGP".into(), Box::new(|im: &DatasetImage| teacher.render_image(im, Vec3::ONE))),
-        ("i-NOLF base (density network, diffuse MLP, PSH 256)".into(), Box::new(|im: &DatasetImage| {
-            variants::render_base(&teacher, &main.1.student, step, alpha_min, &im.rays().collect::<Vec<_>>(), Vec3::ONE).rgb
-        })),
-        ("+ density cubes (diffuse MLP, PSH 256)".into(), Box::new(|im: &DatasetImage| {
-            variants::render_cubes_mlp(&main.1.student, &geometry.density, step, alpha_min, &im.rays().collect::<Vec<_>>(), Vec3::ONE).rgb
-        })),
-    ];
-    for (n, _, asset) in &students {
-        let name = if *n == 256 { "+ diffuse cubes, PSH 256 (the asset)".to_string() } else { format!("PSH {n} (cubes)") };
-        quality.push((name, Box::new(move |im: &DatasetImage| distill::render_image(asset, im, Vec3::ONE))));
-    }
-    let b = bar("eval", (quality.len() * test.images.len()) as u64);
+    let b = bar("eval", (variants.len() * test.images.len()) as u64);
     let mut scores = Vec::new();
-    for (name, render) in &quality {
+    for v in &variants {
         let (mut p, mut s) = (0.0, 0.0);
         for im in &test.images {
             let truth = im.composite_over(Vec3::ONE);
-            let out = render(im);
+            let out = match &v.shading {
+                Shading::Asset(asset) => distill::render_image(asset, im, Vec3::ONE),
+                _ => render(v, &im.rays().collect::<Vec<_>>()).rgb,
+            };
             p += psnr(&truth, &out);
             s += ssim(&truth, &out, im.width as usize, im.height as usize, 3);
             b.inc(1);
         }
         let n = test.images.len() as f64;
-        scores.push((name.clone(), p / n, s / n));
+        scores.push((p / n, s / n));
     }
     b.finish_and_clear();
 
@@ -241,43 +329,35 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         let s = runs[1].stats;
         Ok((s.march_ms, s.total_ms, s.hits as f64 / s.rays.max(1) as f64))
     };
+    let backend = CpuBackend;
     let time_asset = |asset: &Arc<Asset>, view: &View| time_on(&backend, asset, view);
-    let b = bar("time", scores.len() as u64);
+    let b = bar("time", variants.len() as u64);
     let mut rows = Vec::new();
-    let ngp_model = f32_bytes(teacher.field.parameter_count());
-    let ngp_extra = teacher.occupancy.cell_count() as u64 * 4 + teacher.occupancy.cell_count() as u64 / 8 + f32_bytes(teacher.field.density_mlp.params().len() + teacher.field.colour_mlp.params().len());
-    let student_bytes = student_memory(&main.1.student);
-    for (i, (name, p, s)) in scores.iter().enumerate() {
-        let (march_ms, total_ms, model_bytes, extra) = match i {
-            0 => {
-                let (f, ms): (VariantFrame, f64) = timed(1, || variants::render_ngp(&teacher, &rays, Vec3::ONE));
-                (f.march_ms, ms, ngp_model, ngp_extra)
-            }
-            1 => {
-                let (f, ms) = timed(1, || variants::render_base(&teacher, &main.1.student, step, alpha_min, &rays, Vec3::ONE));
-                (f.march_ms, ms, ngp_model + student_bytes, ngp_extra)
-            }
-            2 => {
-                let (f, ms) = timed(3, || variants::render_cubes_mlp(&main.1.student, &geometry.density, step, alpha_min, &rays, Vec3::ONE));
-                (f.march_ms, ms, geometry.density.stored_bytes() + student_bytes, 2 * geometry.density.values.len() as u64)
-            }
-            _ => {
-                let asset = &students[i - 3].2;
+    for (v, &(psnr, ssim)) in variants.iter().zip(&scores) {
+        let (march_ms, total_ms) = match &v.shading {
+            Shading::Asset(asset) => {
                 let (march, total, _) = time_asset(asset, &view)?;
-                let (stored, extra) = asset_memory(asset);
-                (march, total, stored, extra)
+                (march, total)
+            }
+            // The slow network variants once, the rest the median of three.
+            Shading::Ngp | Shading::Base(_) => {
+                let (f, ms) = timed(1, || render(v, &rays));
+                (f.march_ms, ms)
+            }
+            Shading::Cubes(..) => {
+                let (f, ms) = timed(3, || render(v, &rays));
+                (f.march_ms, ms)
             }
         };
-        rows.push(Row { variant: name.clone(), psnr: *p, ssim: *s, model_bytes, runtime_extra_bytes: extra, march_ms, total_ms, fps: 1e3 / total_ms });
+        rows.push(Row { variant: v.name.clone(), psnr, ssim, model_bytes: v.model_bytes, runtime_extra_bytes: v.runtime_extra_bytes, march_ms, total_ms, fps: 1e3 / total_ms });
         b.inc(1);
     }
     b.finish_and_clear();
-
     // Distance sweep: an orbit at the first held-out camera's direction, far → filling the screen.
-    let centre = main.2.bounds.center().as_dvec3();
+    let centre = main.bounds.center().as_dvec3();
     let eye = first.view.world_from_camera.w_axis.truncate();
     let dir = (eye - centre).normalize();
-    let radius = main.2.bounds.radius() as f64;
+    let radius = main.bounds.radius() as f64;
     let (near, far) = (1.2 * radius, 8.0 * radius);
     let n = opts.distances.max(2);
     let b = bar("sweep", n as u64);
@@ -285,7 +365,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     for i in 0..n {
         let distance = far * (near / far).powf(i as f64 / (n - 1) as f64);
         let v = View::look_at(centre + distance * dir, centre, DVec3::Z, intrinsics);
-        let (_, nolf_ms, coverage) = time_asset(&main.2, &v)?;
+        let (_, nolf_ms, coverage) = time_asset(&main, &v)?;
         let (_, ngp_ms) = timed(1, || variants::render_ngp(&teacher, &view_rays(&v), Vec3::ONE));
         sweep.push(SweepPoint { distance, coverage, ngp_ms, nolf_ms });
         b.inc(1);
@@ -306,7 +386,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         let ngp = GpuNgp::new(gpu_backend.ctx.clone(), &teacher)?;
         ngp.render(&rays[..64.min(rays.len())], Vec3::ONE)?; // compiles the kernel
         let (_, ngp_ms) = ngp.render(&rays, Vec3::ONE)?;
-        let (nolf_march_ms, nolf_ms, _) = time_on(&gpu_backend, &main.2, &view)?;
+        let (nolf_march_ms, nolf_ms, _) = time_on(&gpu_backend, &main, &view)?;
         Some(GpuRow { adapter, ngp_ms, nolf_ms, nolf_march_ms })
     } else {
         None

@@ -480,7 +480,7 @@ fn train_nolf(opts: &TrainOptions, teacher: &Trainer, cfg: DistillConfig, data: 
     let train_seconds = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let bar = spinner("bake", "baking diffuse cubes");
-    let asset = distiller.bake(density, step, &data.name, serde_json::Value::Null);
+    let asset = distiller.bake(density, step, &data.name, serde_json::Value::Null).map_err(anyhow::Error::msg)?;
     asset.validate().context("the baked asset fails its own checks")?;
     bar.finish_and_clear();
     let psh_entries = asset.psh.len();

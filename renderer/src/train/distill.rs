@@ -76,6 +76,13 @@ pub struct DistillConfig {
     pub psh_dilation: u32,
     /// Diffuse encoding E_d over the fitted box.
     pub diffuse_encoding: HashGridConfig,
+    /// Ablation (Table 5): without a diffuse net the specular net's colour is the whole
+    /// colour (NEPHELE's "base"); and E_s from a multi-resolution hash grid instead of the
+    /// PSH (every row before "+ PSH"). Such students are not baked into assets.
+    #[serde(default = "yes")]
+    pub diffuse_net: bool,
+    #[serde(default)]
+    pub specular_hash_grid: Option<HashGridConfig>,
     /// Coarse opacity below which a ray is a miss.
     pub alpha_min: f32,
     pub steps: u64,
@@ -112,6 +119,8 @@ impl DistillConfig {
             // No finer than the cubes it is baked into, so the specular net learns to make up
             // for what the baked diffuse lacks (measured on lego: +0.8 dB over 256).
             diffuse_encoding: HashGridConfig { levels: 10, log2_table_size: 17, base_resolution: 16, finest_resolution: 128 },
+            diffuse_net: true,
+            specular_hash_grid: None,
             alpha_min: 0.02,
             steps,
             rays_per_batch: 8192,
@@ -156,6 +165,9 @@ impl DistillConfig {
 
     pub fn validate(&self) -> Result<(), String> {
         self.diffuse_encoding.validate()?;
+        if let Some(grid) = &self.specular_hash_grid {
+            grid.validate()?;
+        }
         let cube_ok = |g: u32, r: u32| (1..=512).contains(&g) && (1..=32).contains(&r) && g * r <= 4096;
         if !cube_ok(self.density_grid, self.density_brick) || !cube_ok(self.diffuse_grid, self.diffuse_brick) {
             return Err("texture cube sizes out of range".into());
@@ -183,6 +195,10 @@ impl DistillConfig {
     pub fn step(&self, bounds: &Aabb) -> f32 {
         bounds.size().max_element() / (self.density_grid * self.density_brick * self.samples_per_cell) as f32
     }
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// The box to model: the object as the training images show it. Density cubes over the
@@ -384,29 +400,103 @@ fn cell_mask(cubes: &TextureCubes, cells: &[UVec3]) -> Vec<bool> {
     mask
 }
 
+/// The diffuse net: `E_d(P_h)` (multi-resolution hash grid over the box) → 64 → 4 (c_d, tint).
+#[derive(Debug, Clone)]
+pub struct DiffuseNet {
+    pub grid: HashGrid,
+    pub mlp: Mlp,
+}
+
+/// The specular net's position encoding `E_s`.
+#[derive(Debug, Clone)]
+pub enum SpecularEncoding {
+    /// A single-resolution grid stored in a perfect spatial hash: what an asset holds.
+    /// Its values are the trainable features (f32 while training).
+    Psh(SpatialHash),
+    /// A multi-resolution hash grid over the box: the ablation rows of NEPHELE's Table 5
+    /// before "+ PSH". Such a student renders only through [`super::variants`].
+    HashGrid(HashGrid),
+}
+
+impl SpecularEncoding {
+    /// Values per point.
+    pub fn width(&self) -> usize {
+        match self {
+            Self::Psh(psh) => psh.features as usize,
+            Self::HashGrid(grid) => grid.output_width(),
+        }
+    }
+
+    pub fn params(&self) -> &[f32] {
+        match self {
+            Self::Psh(psh) => &psh.values,
+            Self::HashGrid(grid) => &grid.params,
+        }
+    }
+
+    pub fn params_mut(&mut self) -> &mut Vec<f32> {
+        match self {
+            Self::Psh(psh) => &mut psh.values,
+            Self::HashGrid(grid) => &mut grid.params,
+        }
+    }
+
+    /// Bytes stored: PSH keys, offsets and f16 features, or the f32 hash table.
+    pub fn stored_bytes(&self) -> u64 {
+        match self {
+            Self::Psh(psh) => psh.stored_bytes(),
+            Self::HashGrid(grid) => 4 * grid.params.len() as u64,
+        }
+    }
+
+    /// `E_s` at object-space `p` (`p01` is the same point in the unit cube of the box).
+    fn encode(&self, p: Vec3, p01: Vec3, out: &mut [f32]) {
+        match self {
+            Self::Psh(psh) => psh.encode(p, out),
+            Self::HashGrid(grid) => grid.encode(p01, out),
+        }
+    }
+
+    /// Adds `∂loss/∂params` given `∂loss/∂E_s` per point (`points × width`).
+    fn backward(&self, points: &[Vec3], points01: &[Vec3], d_encoded: &[f32], grad: &mut [f32]) {
+        match self {
+            Self::Psh(psh) => {
+                let f = psh.features as usize;
+                for (&p, d) in points.iter().zip(d_encoded.chunks_exact(f)) {
+                    for (slot, w) in psh.corner_slots(p) {
+                        for (g, v) in grad[slot * f..(slot + 1) * f].iter_mut().zip(d) {
+                            *g += w * v;
+                        }
+                    }
+                }
+            }
+            Self::HashGrid(grid) => grid.backward(points01, d_encoded, grad),
+        }
+    }
+}
+
 /// The nets of stage 3.
 #[derive(Debug, Clone)]
 pub struct Student {
     pub bounds: Aabb,
-    pub diffuse_grid: HashGrid,
-    /// `[E_d] → 64 → 4` (c_d, tint).
-    pub diffuse_mlp: Mlp,
+    /// `None` in the "base" ablation rows: no diffuse/specular split, the specular net's
+    /// colour is the whole colour (`c_d = 0`, tint 1).
+    pub diffuse: Option<DiffuseNet>,
     /// When set, the diffuse net is read as the renderer reads the baked cubes: evaluated at
     /// the 8 corners of the cell of this fine lattice (cells per axis over `bounds`) around
     /// the hit, outputs blended trilinearly. Training then optimises what is baked.
     pub diffuse_lattice: Option<u32>,
-    /// Trainable features live in `psh.values` (f32 while training).
-    pub psh: SpatialHash,
+    pub encoding: SpecularEncoding,
     /// `[E_s, SH4, α_c] → 64 → 64 → 4` (c_s, α).
     pub specular_mlp: Mlp,
 }
 
-/// Gradients of every [`Student`] parameter group.
+/// Gradients of every [`Student`] parameter group (empty for a group the student lacks).
 #[derive(Debug, Clone, Default)]
 pub struct StudentGradients {
     pub diffuse_grid: Vec<f32>,
     pub diffuse_mlp: Vec<f32>,
-    pub psh: Vec<f32>,
+    pub encoding: Vec<f32>,
     pub specular_mlp: Vec<f32>,
 }
 
@@ -433,14 +523,23 @@ pub struct StudentOutput {
     pub alpha_error: f32,
 }
 
+/// Where a chunk's diffuse colour and tint come from.
+#[derive(Clone, Copy)]
+enum DiffuseSource<'a> {
+    /// The student's own net (or constant `c_d = 0`, tint 1 without one).
+    Own,
+    /// Given per ray (read from baked cubes): `[r, g, b, tint]`.
+    Given(&'a [[f32; 4]]),
+}
+
 #[derive(Default)]
 struct ChunkGradients {
-    /// Where the diffuse net was evaluated (rows of `d_encoded`).
-    points01: Vec<Vec3>,
+    /// Where the diffuse net was evaluated (rows of `d_diffuse_encoded`).
+    diffuse_points01: Vec<Vec3>,
     diffuse_mlp: Vec<f32>,
     specular_mlp: Vec<f32>,
-    d_encoded: Vec<f32>,
-    d_features: Vec<f32>,
+    d_diffuse_encoded: Vec<f32>,
+    d_specular_encoded: Vec<f32>,
     outputs: Vec<StudentOutput>,
 }
 
@@ -449,16 +548,25 @@ fn sigmoid(x: f32) -> f32 {
 }
 
 impl Student {
+    /// The student `cfg` describes: E_s from `psh`, or from `cfg.specular_hash_grid` when
+    /// set; a diffuse net when `cfg.diffuse_net`.
     pub fn new(bounds: Aabb, psh: SpatialHash, cfg: &DistillConfig, rng: &mut impl Rng) -> Self {
-        let diffuse_grid = HashGrid::new(cfg.diffuse_encoding, rng);
-        let mut diffuse_mlp = Mlp::new(&[diffuse_grid.output_width(), HIDDEN, 4], rng);
-        // The specular term starts off (tint ≈ 0.02) and earns its place, so noise in the
-        // per-vertex features is not mixed into every colour from the first step.
-        let tint_bias = diffuse_mlp.params().len() - 1;
-        diffuse_mlp.update(|p| p[tint_bias] = -4.0);
-        let specular_mlp = Mlp::new(&[psh.features as usize + SH_COEFFS + 1, HIDDEN, HIDDEN, 4], rng);
-        let diffuse_lattice = cfg.train_on_bake_lattice.then_some(cfg.diffuse_grid * cfg.diffuse_brick);
-        Self { bounds, diffuse_grid, diffuse_mlp, diffuse_lattice, psh, specular_mlp }
+        let diffuse = cfg.diffuse_net.then(|| {
+            let grid = HashGrid::new(cfg.diffuse_encoding, rng);
+            let mut mlp = Mlp::new(&[grid.output_width(), HIDDEN, 4], rng);
+            // The specular term starts off (tint ≈ 0.02) and earns its place, so noise in the
+            // per-vertex features is not mixed into every colour from the first step.
+            let tint_bias = mlp.params().len() - 1;
+            mlp.update(|p| p[tint_bias] = -4.0);
+            DiffuseNet { grid, mlp }
+        });
+        let encoding = match cfg.specular_hash_grid {
+            Some(grid) => SpecularEncoding::HashGrid(HashGrid::new(grid, rng)),
+            None => SpecularEncoding::Psh(psh),
+        };
+        let specular_mlp = Mlp::new(&[encoding.width() + SH_COEFFS + 1, HIDDEN, HIDDEN, 4], rng);
+        let diffuse_lattice = (cfg.diffuse_net && cfg.train_on_bake_lattice).then_some(cfg.diffuse_grid * cfg.diffuse_brick);
+        Self { bounds, diffuse, diffuse_lattice, encoding, specular_mlp }
     }
 
     pub fn to_unit(&self, p: Vec3) -> Vec3 {
@@ -466,24 +574,36 @@ impl Student {
     }
 
     pub fn zero_gradients(&self) -> StudentGradients {
+        let (grid, mlp) = self.diffuse.as_ref().map_or((0, 0), |d| (d.grid.params.len(), d.mlp.params().len()));
         StudentGradients {
-            diffuse_grid: vec![0.0; self.diffuse_grid.params.len()],
-            diffuse_mlp: vec![0.0; self.diffuse_mlp.params().len()],
-            psh: vec![0.0; self.psh.values.len()],
+            diffuse_grid: vec![0.0; grid],
+            diffuse_mlp: vec![0.0; mlp],
+            encoding: vec![0.0; self.encoding.params().len()],
             specular_mlp: vec![0.0; self.specular_mlp.params().len()],
         }
     }
 
-    /// Diffuse colour and tint at object-space points: `points × 4`.
+    /// Bytes of every trained parameter as stored for rendering (f32 nets and hash tables,
+    /// the PSH as an asset stores it).
+    pub fn stored_bytes(&self) -> u64 {
+        let diffuse = self.diffuse.as_ref().map_or(0, |d| d.grid.params.len() + d.mlp.params().len());
+        4 * (diffuse + self.specular_mlp.params().len()) as u64 + self.encoding.stored_bytes()
+    }
+
+    /// Diffuse colour and tint at object-space points: `points × 4` (`c_d = 0`, tint 1
+    /// without a diffuse net).
     pub fn diffuse(&self, points: &[Vec3]) -> Vec<f32> {
+        let Some(net) = &self.diffuse else {
+            return points.iter().flat_map(|_| [0.0, 0.0, 0.0, 1.0]).collect();
+        };
         points
             .par_chunks(1024)
             .flat_map_iter(|chunk| {
                 let points01: Vec<Vec3> = chunk.iter().map(|&p| self.to_unit(p)).collect();
-                let mut enc = vec![0.0; points01.len() * self.diffuse_grid.output_width()];
-                self.diffuse_grid.encode_batch(&points01, &mut enc);
+                let mut enc = vec![0.0; points01.len() * net.grid.output_width()];
+                net.grid.encode_batch(&points01, &mut enc);
                 let mut tape = MlpTape::default();
-                self.diffuse_mlp.forward(&enc, &mut tape);
+                net.mlp.forward(&enc, &mut tape);
                 tape.output().iter().map(|&o| sigmoid(o)).collect::<Vec<_>>()
             })
             .collect()
@@ -509,47 +629,61 @@ impl Student {
         }
     }
 
-    /// The specular net's input for one ray.
-    fn specular_input(&self, ray: &StudentRay, out: &mut [f32]) {
-        let f = self.psh.features as usize;
-        self.psh.encode(ray.p_hit, &mut out[..f]);
-        out[f..f + SH_COEFFS].copy_from_slice(&sh4(ray.dir));
-        out[f + SH_COEFFS] = ray.alpha_c;
-    }
-
     /// Forward, and with `loss_scale` the backward pass of `loss_scale · Σ (‖e_rgb‖² + e_α²)`.
-    fn run_chunk(&self, rays: &[StudentRay], loss_scale: Option<f32>) -> ChunkGradients {
+    fn run_chunk(&self, rays: &[StudentRay], diffuse_source: DiffuseSource<'_>, loss_scale: Option<f32>) -> ChunkGradients {
         let n = rays.len();
-        let (we, f) = (self.diffuse_grid.output_width(), self.psh.features as usize);
-        let ws = f + SH_COEFFS + 1;
+        let net = match diffuse_source {
+            DiffuseSource::Own => self.diffuse.as_ref(),
+            DiffuseSource::Given(_) => None,
+        };
+        // Diffuse colour and tint per ray: the net's taps, blended, or given.
         let taps = if self.diffuse_lattice.is_some() { 8 } else { 1 };
-        let (mut points01, mut tap_weights) = (Vec::with_capacity(n * taps), Vec::with_capacity(n * taps));
-        for r in rays {
-            self.diffuse_taps(r.p_hit, &mut points01, &mut tap_weights);
-        }
-        let mut enc = vec![0.0; n * taps * we];
-        self.diffuse_grid.encode_batch(&points01, &mut enc);
+        let (mut points01, mut tap_weights) = (Vec::new(), Vec::new());
+        let mut enc = Vec::new();
+        let mut tape_d = MlpTape::default();
+        let mut diffuse_out = Vec::new();
+        let blended: Vec<[f32; 4]> = match (net, diffuse_source) {
+            (_, DiffuseSource::Given(given)) => given.to_vec(),
+            (None, _) => vec![[0.0, 0.0, 0.0, 1.0]; n],
+            (Some(net), _) => {
+                for r in rays {
+                    self.diffuse_taps(r.p_hit, &mut points01, &mut tap_weights);
+                }
+                enc = vec![0.0; n * taps * net.grid.output_width()];
+                net.grid.encode_batch(&points01, &mut enc);
+                net.mlp.forward(&enc, &mut tape_d);
+                diffuse_out = tape_d.output().iter().map(|&o| sigmoid(o)).collect();
+                (0..n)
+                    .map(|i| {
+                        let mut b = [0.0f32; 4];
+                        for t in i * taps..(i + 1) * taps {
+                            for (b, v) in b.iter_mut().zip(&diffuse_out[4 * t..4 * t + 4]) {
+                                *b += tap_weights[t] * v;
+                            }
+                        }
+                        b
+                    })
+                    .collect()
+            }
+        };
+        // The specular net.
+        let f = self.encoding.width();
+        let ws = f + SH_COEFFS + 1;
         let mut xs = vec![0.0; n * ws];
-        for (ray, x) in rays.iter().zip(xs.chunks_exact_mut(ws)) {
-            self.specular_input(ray, x);
+        let hit01: Vec<Vec3> = rays.iter().map(|r| self.to_unit(r.p_hit)).collect();
+        for ((ray, &p01), x) in rays.iter().zip(&hit01).zip(xs.chunks_exact_mut(ws)) {
+            self.encoding.encode(ray.p_hit, p01, &mut x[..f]);
+            x[f..f + SH_COEFFS].copy_from_slice(&sh4(ray.dir));
+            x[f + SH_COEFFS] = ray.alpha_c;
         }
-        let (mut tape_d, mut tape_s) = (MlpTape::default(), MlpTape::default());
-        self.diffuse_mlp.forward(&enc, &mut tape_d);
+        let mut tape_s = MlpTape::default();
         self.specular_mlp.forward(&xs, &mut tape_s);
         let mut out = ChunkGradients::default();
-        let (mut d_od, mut d_os) = (vec![0.0; n * taps * 4], vec![0.0; n * 4]);
-        let diffuse_out: Vec<f32> = tape_d.output().iter().map(|&o| sigmoid(o)).collect();
+        let (mut d_od, mut d_os) = (vec![0.0; diffuse_out.len()], vec![0.0; n * 4]);
         for (i, ray) in rays.iter().enumerate() {
-            // Diffuse colour and tint: the taps' sigmoid outputs, blended.
-            let mut blended = [0.0f32; 4];
-            for t in i * taps..(i + 1) * taps {
-                for (b, v) in blended.iter_mut().zip(&diffuse_out[4 * t..4 * t + 4]) {
-                    *b += tap_weights[t] * v;
-                }
-            }
             let os = &tape_s.output()[4 * i..4 * i + 4];
-            let c_d = Vec3::new(blended[0], blended[1], blended[2]);
-            let tint = blended[3];
+            let [r, g, b, tint] = blended[i];
+            let c_d = Vec3::new(r, g, b);
             let c_s = Vec3::new(sigmoid(os[0]), sigmoid(os[1]), sigmoid(os[2]));
             let alpha = sigmoid(os[3]);
             let u = c_d + tint * c_s;
@@ -564,61 +698,70 @@ impl Student {
             let d_alpha = d_pixel.dot(c - ray.background) + 2.0 * s * ea;
             let inside = Vec3::select(u.cmpgt(Vec3::ZERO) & u.cmplt(Vec3::ONE), Vec3::ONE, Vec3::ZERO);
             let d_c = alpha * d_pixel * inside;
-            let d_tint = d_c.dot(c_s);
             let d_cs = tint * d_c;
             let sig_d = |y: f32| y * (1.0 - y);
-            let d_blended = [d_c.x, d_c.y, d_c.z, d_tint];
-            for t in i * taps..(i + 1) * taps {
-                for ch in 0..4 {
-                    d_od[4 * t + ch] = tap_weights[t] * d_blended[ch] * sig_d(diffuse_out[4 * t + ch]);
+            if net.is_some() {
+                let d_blended = [d_c.x, d_c.y, d_c.z, d_c.dot(c_s)];
+                for t in i * taps..(i + 1) * taps {
+                    for ch in 0..4 {
+                        d_od[4 * t + ch] = tap_weights[t] * d_blended[ch] * sig_d(diffuse_out[4 * t + ch]);
+                    }
                 }
             }
             d_os[4 * i..4 * i + 4].copy_from_slice(&[d_cs.x * sig_d(c_s.x), d_cs.y * sig_d(c_s.y), d_cs.z * sig_d(c_s.z), d_alpha * sig_d(alpha)]);
         }
         if loss_scale.is_some() {
-            out.diffuse_mlp = vec![0.0; self.diffuse_mlp.params().len()];
+            if let Some(net) = net {
+                out.diffuse_mlp = vec![0.0; net.mlp.params().len()];
+                out.d_diffuse_encoded = vec![0.0; enc.len()];
+                net.mlp.backward(&enc, &tape_d, &d_od, &mut out.diffuse_mlp, Some(&mut out.d_diffuse_encoded));
+                out.diffuse_points01 = points01;
+            }
             out.specular_mlp = vec![0.0; self.specular_mlp.params().len()];
-            out.d_encoded = vec![0.0; n * taps * we];
             let mut d_xs = vec![0.0; n * ws];
-            self.diffuse_mlp.backward(&enc, &tape_d, &d_od, &mut out.diffuse_mlp, Some(&mut out.d_encoded));
             self.specular_mlp.backward(&xs, &tape_s, &d_os, &mut out.specular_mlp, Some(&mut d_xs));
-            out.d_features = d_xs.chunks_exact(ws).flat_map(|row| row[..f].iter().copied()).collect();
-            out.points01 = points01;
+            out.d_specular_encoded = d_xs.chunks_exact(ws).flat_map(|row| row[..f].iter().copied()).collect();
         }
         out
     }
 
     /// Per-ray results without gradients.
     pub fn forward(&self, rays: &[StudentRay], rays_per_chunk: usize) -> Vec<StudentOutput> {
-        rays.par_chunks(rays_per_chunk.max(1)).flat_map_iter(|c| self.run_chunk(c, None).outputs).collect()
+        rays.par_chunks(rays_per_chunk.max(1)).flat_map_iter(|c| self.run_chunk(c, DiffuseSource::Own, None).outputs).collect()
+    }
+
+    /// Per-ray results with the diffuse colour and tint given per ray (read from baked
+    /// cubes) instead of the diffuse net.
+    pub fn forward_with_diffuse(&self, rays: &[StudentRay], diffuse: &[[f32; 4]], rays_per_chunk: usize) -> Vec<StudentOutput> {
+        assert_eq!(rays.len(), diffuse.len());
+        let k = rays_per_chunk.max(1);
+        rays.par_chunks(k)
+            .zip(diffuse.par_chunks(k))
+            .flat_map_iter(|(c, d)| self.run_chunk(c, DiffuseSource::Given(d), None).outputs)
+            .collect()
     }
 
     /// Adds the gradients of the batch loss `mean over rays of (‖e_rgb‖² + e_α²) / 4` to
     /// `grads`; returns the per-ray results.
     pub fn gradients(&self, rays: &[StudentRay], rays_per_chunk: usize, grads: &mut StudentGradients) -> Vec<StudentOutput> {
         let scale = 1.0 / (4 * rays.len().max(1)) as f32;
-        let chunks: Vec<ChunkGradients> = rays.par_chunks(rays_per_chunk.max(1)).map(|c| self.run_chunk(c, Some(scale))).collect();
+        let chunks: Vec<ChunkGradients> = rays.par_chunks(rays_per_chunk.max(1)).map(|c| self.run_chunk(c, DiffuseSource::Own, Some(scale))).collect();
         let mut outputs = Vec::with_capacity(rays.len());
-        let mut d_encoded = Vec::with_capacity(rays.len() * self.diffuse_grid.output_width());
-        let mut d_features = Vec::with_capacity(rays.len() * self.psh.features as usize);
-        let mut points01 = Vec::with_capacity(rays.len());
+        let (mut d_diffuse, mut d_specular, mut diffuse_points01) = (Vec::new(), Vec::new(), Vec::new());
         for c in chunks {
-            points01.extend(c.points01);
+            diffuse_points01.extend(c.diffuse_points01);
             grads.diffuse_mlp.iter_mut().zip(&c.diffuse_mlp).for_each(|(g, d)| *g += d);
             grads.specular_mlp.iter_mut().zip(&c.specular_mlp).for_each(|(g, d)| *g += d);
-            d_encoded.extend(c.d_encoded);
-            d_features.extend(c.d_features);
+            d_diffuse.extend(c.d_diffuse_encoded);
+            d_specular.extend(c.d_specular_encoded);
             outputs.extend(c.outputs);
         }
-        self.diffuse_grid.backward(&points01, &d_encoded, &mut grads.diffuse_grid);
-        let f = self.psh.features as usize;
-        for (ray, d) in rays.iter().zip(d_features.chunks_exact(f)) {
-            for (slot, w) in self.psh.corner_slots(ray.p_hit) {
-                for (g, v) in grads.psh[slot * f..(slot + 1) * f].iter_mut().zip(d) {
-                    *g += w * v;
-                }
-            }
+        if let Some(net) = &self.diffuse {
+            net.grid.backward(&diffuse_points01, &d_diffuse, &mut grads.diffuse_grid);
         }
+        let points: Vec<Vec3> = rays.iter().map(|r| r.p_hit).collect();
+        let points01: Vec<Vec3> = points.iter().map(|&p| self.to_unit(p)).collect();
+        self.encoding.backward(&points, &points01, &d_specular, &mut grads.encoding);
         outputs
     }
 
@@ -724,17 +867,19 @@ impl Distiller {
         )?;
         let mut student = Student::new(geometry.bounds, psh, &cfg, &mut rng);
         // Stored entries start small and random (as hash-grid entries do); free slots stay 0.
-        let keys = student.psh.keys.clone();
-        for (slot, values) in student.psh.values.chunks_exact_mut(f as usize).enumerate() {
-            if keys[slot] != crate::psh::EMPTY_KEY {
-                values.iter_mut().for_each(|v| *v = rng.random_range(-1e-4..1e-4));
+        if let SpecularEncoding::Psh(psh) = &mut student.encoding {
+            let keys = psh.keys.clone();
+            for (slot, values) in psh.values.chunks_exact_mut(f as usize).enumerate() {
+                if keys[slot] != crate::psh::EMPTY_KEY {
+                    values.iter_mut().for_each(|v| *v = rng.random_range(-1e-4..1e-4));
+                }
             }
         }
         let grads = student.zero_gradients();
         let adam = [
             Adam::new(cfg.adam, grads.diffuse_grid.len()),
             Adam::new(cfg.adam, grads.diffuse_mlp.len()),
-            Adam::new(cfg.adam, grads.psh.len()),
+            Adam::new(cfg.adam, grads.encoding.len()),
             Adam::new(cfg.adam, grads.specular_mlp.len()),
         ];
         let tiles = geometry.hits.tile_start.len() - 1;
@@ -794,16 +939,20 @@ impl Distiller {
         let mut grads = std::mem::take(&mut self.grads);
         let outputs = self.student.gradients(&rays, self.config.rays_per_chunk, &mut grads);
         let l2 = self.config.l2_mlp_weights;
-        add_l2(self.student.diffuse_mlp.params(), &mut grads.diffuse_mlp, &self.student.diffuse_mlp.weight_ranges(), l2);
+        if let Some(net) = &self.student.diffuse {
+            add_l2(net.mlp.params(), &mut grads.diffuse_mlp, &net.mlp.weight_ranges(), l2);
+        }
         add_l2(self.student.specular_mlp.params(), &mut grads.specular_mlp, &self.student.specular_mlp.weight_ranges(), l2);
         let factor = self.config.learning_rate_schedule.iter().rev().find(|(from, _)| self.step >= *from).map_or(1.0, |(_, f)| *f);
         for adam in &mut self.adam {
             adam.config.learning_rate = self.config.adam.learning_rate * factor;
         }
-        let [a_grid, a_dmlp, a_psh, a_smlp] = &mut self.adam;
-        a_grid.step(&mut self.student.diffuse_grid.params, &mut grads.diffuse_grid, true);
-        self.student.diffuse_mlp.update(|p| a_dmlp.step(p, &mut grads.diffuse_mlp, false));
-        a_psh.step(&mut self.student.psh.values, &mut grads.psh, true);
+        let [a_grid, a_dmlp, a_enc, a_smlp] = &mut self.adam;
+        if let Some(net) = &mut self.student.diffuse {
+            a_grid.step(&mut net.grid.params, &mut grads.diffuse_grid, true);
+            net.mlp.update(|p| a_dmlp.step(p, &mut grads.diffuse_mlp, false));
+        }
+        a_enc.step(self.student.encoding.params_mut(), &mut grads.encoding, true);
         self.student.specular_mlp.update(|p| a_smlp.step(p, &mut grads.specular_mlp, false));
         self.grads = grads;
         // Error map: running mean of the loss of the rays drawn in each tile.
@@ -824,8 +973,9 @@ impl Distiller {
         }
     }
 
-    /// Stage 4: bake the diffuse cubes around hit cells and assemble the asset.
-    pub fn bake(&self, density: TextureCubes, step: f32, name: &str, provenance: serde_json::Value) -> Asset {
+    /// The diffuse net baked into cubes in the cells holding hits (and `diffuse_dilation`
+    /// cells around them).
+    pub fn bake_diffuse(&self) -> TextureCubes {
         let cfg = &self.config;
         let s = &self.student;
         let bounds = s.bounds;
@@ -837,45 +987,64 @@ impl Distiller {
         }
         // The diffuse net, evaluated once for all corners of all wanted bricks.
         let occupied = |c: UVec3| wanted[c.x as usize + g * (c.y as usize + g * c.z as usize)];
-        let diffuse = TextureCubes::bake_batched(bounds, cfg.diffuse_grid, cfg.diffuse_brick, 4, occupied, |points| s.diffuse(points));
-        let mut psh = s.psh.clone();
-        psh.values.iter_mut().for_each(|v| *v = half::f16::from_f32(*v).to_f32());
-        Asset {
-            name: name.to_string(),
-            bounds,
-            march: MarchMeta { step, alpha_min: cfg.alpha_min },
-            density,
-            diffuse,
-            psh,
-            mlp: s.specular_for_asset(),
-            provenance,
+        TextureCubes::bake_batched(bounds, cfg.diffuse_grid, cfg.diffuse_brick, 4, occupied, |points| s.diffuse(points))
+    }
+
+    /// Stage 4: bake the diffuse cubes and assemble the asset. Only students with a diffuse
+    /// net and a PSH make assets.
+    pub fn bake(&self, density: TextureCubes, step: f32, name: &str, provenance: serde_json::Value) -> Result<Asset, String> {
+        let SpecularEncoding::Psh(psh) = &self.student.encoding else {
+            return Err("a student with a hash-grid E_s has no asset form (it is a Table 5 ablation)".into());
+        };
+        if self.student.diffuse.is_none() {
+            return Err("a student without a diffuse net has no asset form (it is a Table 5 ablation)".into());
         }
+        let mut psh = psh.clone();
+        psh.values.iter_mut().for_each(|v| *v = half::f16::from_f32(*v).to_f32());
+        Ok(Asset {
+            name: name.to_string(),
+            bounds: self.student.bounds,
+            march: MarchMeta { step, alpha_min: self.config.alpha_min },
+            density,
+            diffuse: self.bake_diffuse(),
+            psh,
+            mlp: self.student.specular_for_asset(),
+            provenance,
+        })
     }
 }
 
 pub const STUDENT_FORMAT: &str = "nephele-nolf-student";
 
+fn encoding_tensor(e: &SpecularEncoding) -> &'static str {
+    match e {
+        SpecularEncoding::Psh(_) => "psh_values",
+        SpecularEncoding::HashGrid(_) => "specular_grid",
+    }
+}
+
 impl Distiller {
-    /// The trained nets as safetensors (f32 tensors `diffuse_grid`, `diffuse_mlp`, `psh_values`,
-    /// `specular_mlp`; JSON metadata with the step and configuration). The geometry is not
+    /// The trained nets as safetensors (f32 tensors `diffuse_grid`, `diffuse_mlp`, `psh_values`
+    /// or `specular_grid`, `specular_mlp`; JSON metadata with the step and configuration). The geometry is not
     /// stored: it is recomputed, deterministically, from the teacher. Written at the end of
     /// the stage, so a resumed run skips a finished stage.
     /// `teacher_step` names the i-NGP state the geometry came from.
     pub fn student_bytes(&self, teacher_step: u64) -> Result<Vec<u8>, String> {
         let s = &self.student;
         let bytes = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-        let data = [
-            ("diffuse_grid", bytes(&s.diffuse_grid.params)),
-            ("diffuse_mlp", bytes(s.diffuse_mlp.params())),
-            ("psh_values", bytes(&s.psh.values)),
-            ("specular_mlp", bytes(s.specular_mlp.params())),
-        ];
+        let mut data = Vec::new();
+        if let Some(net) = &s.diffuse {
+            data.push(("diffuse_grid", bytes(&net.grid.params)));
+            data.push(("diffuse_mlp", bytes(net.mlp.params())));
+        }
+        data.push((encoding_tensor(&s.encoding), bytes(s.encoding.params())));
+        data.push(("specular_mlp", bytes(s.specular_mlp.params())));
         let views = data
             .iter()
             .map(|(name, b)| safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![b.len() / 4], b).map(|v| (*name, v)))
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| e.to_string())?;
-        let meta = serde_json::json!({ "format": STUDENT_FORMAT, "version": 1, "step": self.step, "teacher_step": teacher_step, "config": self.config, "psh_entries": s.psh.len() });
+        let meta = serde_json::json!({ "format": STUDENT_FORMAT, "version": 1, "step": self.step, "teacher_step": teacher_step, "config": self.config, "encoding_values": s.encoding.params().len() });
         let info = [("nolf_student".to_string(), meta.to_string())].into_iter().collect();
         safetensors::serialize(views, Some(info)).map_err(|e| e.to_string())
     }
@@ -910,13 +1079,17 @@ impl Distiller {
             Ok(v)
         };
         let s = &mut self.student;
-        let grid = read("diffuse_grid", s.diffuse_grid.params.len())?;
-        let dmlp = read("diffuse_mlp", s.diffuse_mlp.params().len())?;
-        let psh = read("psh_values", s.psh.values.len())?;
+        let diffuse = match &s.diffuse {
+            Some(net) => Some((read("diffuse_grid", net.grid.params.len())?, read("diffuse_mlp", net.mlp.params().len())?)),
+            None => None,
+        };
+        let encoding = read(encoding_tensor(&s.encoding), s.encoding.params().len())?;
         let smlp = read("specular_mlp", s.specular_mlp.params().len())?;
-        s.diffuse_grid.params = grid;
-        s.diffuse_mlp.update(|p| p.copy_from_slice(&dmlp));
-        s.psh.values = psh;
+        if let (Some(net), Some((grid, mlp))) = (&mut s.diffuse, diffuse) {
+            net.grid.params = grid;
+            net.mlp.update(|p| p.copy_from_slice(&mlp));
+        }
+        *s.encoding.params_mut() = encoding;
         s.specular_mlp.update(|p| p.copy_from_slice(&smlp));
         self.step = meta["step"].as_u64().unwrap_or(0);
         Ok(())

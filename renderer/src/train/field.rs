@@ -117,7 +117,18 @@ impl Field {
         tape.sigma.clear();
         tape.sigma.extend(tape.density.output().chunks_exact(GEO_FEATURES).map(|o| density_from_raw(o[0])));
     }
+}
 
+impl FieldTape {
+    /// Appends the rows of another density pass (its `encoded`, density-MLP tape and `σ`).
+    pub fn append_density(&mut self, other: &FieldTape) {
+        self.encoded.extend_from_slice(&other.encoded);
+        self.density.append(&other.density);
+        self.sigma.extend_from_slice(&other.sigma);
+    }
+}
+
+impl Field {
     /// Colour pass over the samples `coloured` (after [`Self::forward_density`]);
     /// `view_sh[k]` is the SH encoding of sample `coloured[k]`'s view direction.
     pub fn forward_colour(&self, coloured: Vec<u32>, view_sh: &[[f32; SH_COEFFS]], tape: &mut FieldTape) {

@@ -38,6 +38,19 @@ impl MlpTape {
         self.layers.last().map(Vec::as_slice).unwrap_or(&[])
     }
 
+    /// Appends another tape's rows (same network).
+    pub fn append(&mut self, other: &MlpTape) {
+        if self.layers.is_empty() {
+            self.layers = other.layers.clone();
+        } else {
+            assert_eq!(self.layers.len(), other.layers.len(), "tapes of different networks");
+            for (mine, theirs) in self.layers.iter_mut().zip(&other.layers) {
+                mine.extend_from_slice(theirs);
+            }
+        }
+        self.rows += other.rows;
+    }
+
     /// The tape of the given rows only, in that order.
     pub fn gather(&self, rows: &[u32]) -> MlpTape {
         let layers = self.layers.iter().map(|l| gather_rows(l, l.len() / self.rows.max(1), rows)).collect();

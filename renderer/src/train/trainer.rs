@@ -6,8 +6,9 @@
 //! 2. march each ray through the scene box with the fixed step `δ = box diagonal /
 //!    steps_per_diagonal`, samples at `t₀ + (k + u)δ` (`u` uniform per ray; ½ when rendering,
 //!    the renderer's rule of DESIGN §3), kept only in occupied cells of the [`OccupancyGrid`];
-//! 3. σ for every sample; front to back `α_i = 1 − exp(−σ_i δ)`, `T_{i+1} = T_i (1 − α_i)`,
-//!    stopping once `T < early_stop_transmittance`; colour only for the samples used;
+//! 3. σ front to back, `α_i = 1 − exp(−σ_i δ)`, `T_{i+1} = T_i (1 − α_i)`, stopping once
+//!    `T < early_stop_transmittance` (σ is evaluated a window of samples at a time, so the
+//!    samples behind that point cost nothing); colour only for the samples used;
 //!    `C = Σ T_i α_i c_i + T_end · bg`;
 //! 4. loss `= mean over rays and channels of (C − target)²`;
 //! 5. reverse accumulation: `∂C/∂c_i = T_i α_i`, and
@@ -32,7 +33,12 @@ use super::{
     hash_grid::HashGridConfig,
     occupancy::OccupancyGrid,
 };
-use crate::{cubes::Aabb, dataset::Dataset, model::clip_ray, sh::sh4};
+use crate::{
+    cubes::Aabb,
+    dataset::Dataset,
+    model::clip_ray,
+    sh::{SH_COEFFS, sh4},
+};
 
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct OccupancyConfig {
@@ -260,6 +266,9 @@ struct ChunkOutput {
     colour_grad: Vec<f32>,
 }
 
+/// Samples per ray and round of density evaluation in a training or rendering chunk.
+const DENSITY_WINDOW: usize = 32;
+
 /// A well-mixed 64-bit value from a seed and two counters (splitmix64 finaliser).
 pub(crate) fn mix(seed: u64, a: u64, b: u64) -> u64 {
     let mut x = seed ^ a.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ b.wrapping_mul(0xc2b2_ae3d_27d4_eb4f);
@@ -329,43 +338,60 @@ impl Trainer {
     fn run_chunk(&self, rays: &[TrainRay], loss_scale: Option<f32>) -> ChunkOutput {
         let delta = self.step_size();
         let early_stop = self.config.early_stop_transmittance;
-        let mut points01 = Vec::new();
+        let mut marched = Vec::new();
         let mut ranges = Vec::with_capacity(rays.len());
         for ray in rays {
-            let start = points01.len();
-            self.march(ray.origin, ray.dir, ray.jitter, &mut points01);
-            ranges.push(start..points01.len());
+            let start = marched.len();
+            self.march(ray.origin, ray.dir, ray.jitter, &mut marched);
+            ranges.push(start..marched.len());
         }
+        // σ front to back in rounds of `DENSITY_WINDOW` samples per ray still transparent: a
+        // ray's samples behind the one that makes `T < early_stop` are never evaluated (early
+        // in training, before the occupancy grid has emptied the box, that is most of them).
+        // The tape's rows are the evaluated samples in evaluation order; `used[r]` lists ray
+        // r's rows front to back, up to and including the one that stopped it.
         let mut tape = FieldTape::default();
-        self.field.forward_density(&points01, &mut tape);
-        // Front to back until the ray is opaque: only these samples need a colour.
-        let mut coloured = Vec::with_capacity(points01.len());
-        let mut view_sh = Vec::with_capacity(points01.len());
-        let mut used = Vec::with_capacity(rays.len());
-        for (ray, range) in rays.iter().zip(&ranges) {
-            let sh = sh4(ray.dir);
-            let mut transmittance = 1.0f32;
-            let mut n = 0;
-            for s in range.clone() {
-                coloured.push(s as u32);
-                view_sh.push(sh);
-                n += 1;
-                transmittance *= (-tape.sigma[s] * delta).exp();
-                if transmittance < early_stop {
-                    break;
+        let mut round = FieldTape::default();
+        let mut points01: Vec<Vec3> = Vec::new();
+        let mut used: Vec<Vec<u32>> = vec![Vec::new(); rays.len()];
+        let mut next: Vec<usize> = ranges.iter().map(|r| r.start).collect();
+        let mut transmittance = vec![1.0f32; rays.len()];
+        let mut owners = Vec::new();
+        loop {
+            let first_row = points01.len();
+            owners.clear();
+            for (r, range) in ranges.iter().enumerate() {
+                if transmittance[r] >= early_stop {
+                    let end = (next[r] + DENSITY_WINDOW).min(range.end);
+                    points01.extend_from_slice(&marched[next[r]..end]);
+                    owners.extend(std::iter::repeat_n(r, end - next[r]));
+                    next[r] = end;
                 }
             }
-            used.push(n);
+            if owners.is_empty() {
+                break;
+            }
+            self.field.forward_density(&points01[first_row..], &mut round);
+            tape.append_density(&round);
+            for (k, &r) in owners.iter().enumerate() {
+                if transmittance[r] >= early_stop {
+                    used[r].push((first_row + k) as u32);
+                    transmittance[r] *= (-round.sigma[k] * delta).exp();
+                }
+            }
         }
-        self.field.forward_colour(coloured, &view_sh, &mut tape);
+        // Only the used samples need a colour.
+        let view_sh: Vec<[f32; SH_COEFFS]> = rays.iter().zip(&used).flat_map(|(ray, u)| std::iter::repeat_n(sh4(ray.dir), u.len())).collect();
+        self.field.forward_colour(used.concat(), &view_sh, &mut tape);
 
         let mut out = ChunkOutput { samples: points01.len(), coloured_samples: tape.coloured.len(), ..ChunkOutput::default() };
         let mut d_sigma = vec![0.0f32; if loss_scale.is_some() { tape.coloured.len() } else { 0 }];
         let mut d_rgb = vec![0.0f32; if loss_scale.is_some() { tape.rgb.len() } else { 0 }];
         let mut k0 = 0;
-        for ((ray, range), &n) in rays.iter().zip(&ranges).zip(&used) {
+        for (ray, rows) in rays.iter().zip(&used) {
+            let n = rows.len();
             let colour = |i: usize| Vec3::from_slice(&tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3]);
-            let alpha = |i: usize| -(-tape.sigma[range.start + i] * delta).exp_m1();
+            let alpha = |i: usize| -(-tape.sigma[rows[i] as usize] * delta).exp_m1();
             let mut transmittance = 1.0f32;
             let mut c = Vec3::ZERO;
             for i in 0..n {

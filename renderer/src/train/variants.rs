@@ -5,8 +5,10 @@
 //! - **base**: the hit point and `α_c` from the teacher's density network instead of cubes
 //!   (same step and rule as [`model::march`]: samples `t0 + (k + ½)δ` in the fitted box,
 //!   skipping cells the teacher's occupancy grid marks empty, max-weight hit, stop at
-//!   `T < early_stop`), shaded by the student with diffuse from its MLP;
-//! - **+ density cubes**: hits from the baked cubes, diffuse still from the MLP;
+//!   `T < early_stop`), shaded by a student ([`render_base`]);
+//! - hits from the baked density cubes, shaded by a student with diffuse from its net or
+//!   from baked diffuse cubes ([`render_cubes`]); the student's `E_s` may be a hash grid
+//!   (the ablation rows) or the PSH;
 //! - the i-NGP baseline itself is [`Trainer::render`]; the full asset is the CPU backend.
 //!
 //! Each returns interleaved RGB over a background and where the time went.
@@ -114,8 +116,9 @@ pub fn march_network(teacher: &Trainer, bounds: &Aabb, step: f32, rays: &[(Vec3,
         .collect()
 }
 
-/// Shades marched rays with the student (diffuse from its MLP); misses get the background.
-fn shade_student(student: &Student, rays: &[(Vec3, Vec3)], marched: &[MarchHit], alpha_min: f32, background: Vec3) -> (Vec<f32>, usize) {
+/// Shades marched rays with the student, diffuse from its net or from `diffuse` cubes;
+/// misses get the background.
+fn shade_student(student: &Student, diffuse: Option<&TextureCubes>, rays: &[(Vec3, Vec3)], marched: &[MarchHit], alpha_min: f32, background: Vec3) -> (Vec<f32>, usize) {
     let hit_rays: Vec<StudentRay> = rays
         .iter()
         .zip(marched)
@@ -123,7 +126,14 @@ fn shade_student(student: &Student, rays: &[(Vec3, Vec3)], marched: &[MarchHit],
         .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background })
         .collect();
     let hits = hit_rays.len();
-    let mut shaded = student.forward(&hit_rays, 256).into_iter();
+    let shaded = match diffuse {
+        None => student.forward(&hit_rays, 256),
+        Some(cubes) => {
+            let given: Vec<[f32; 4]> = hit_rays.par_iter().map(|r| cubes.sample::<4>(r.p_hit)).collect();
+            student.forward_with_diffuse(&hit_rays, &given, 256)
+        }
+    };
+    let mut shaded = shaded.into_iter();
     let rgb = marched
         .iter()
         .flat_map(|m| if m.alpha_c >= alpha_min { shaded.next().map_or(background, |o| o.pixel) } else { background }.to_array())
@@ -131,22 +141,32 @@ fn shade_student(student: &Student, rays: &[(Vec3, Vec3)], marched: &[MarchHit],
     (rgb, hits)
 }
 
-/// "base": hits from the density network, diffuse from the MLP.
+/// "base": hits from the density network, shaded by the student.
 pub fn render_base(teacher: &Trainer, student: &Student, step: f32, alpha_min: f32, rays: &[(Vec3, Vec3)], background: Vec3) -> VariantFrame {
     let start = Instant::now();
     let marched = march_network(teacher, &student.bounds, step, rays);
     let march_ms = start.elapsed().as_secs_f64() * 1e3;
-    let (rgb, hits) = shade_student(student, rays, &marched, alpha_min, background);
+    let (rgb, hits) = shade_student(student, None, rays, &marched, alpha_min, background);
     VariantFrame { rgb, march_ms, total_ms: start.elapsed().as_secs_f64() * 1e3, hits }
 }
 
-/// "+ density cubes": hits from the cubes, diffuse from the MLP.
-pub fn render_cubes_mlp(student: &Student, density: &TextureCubes, step: f32, alpha_min: f32, rays: &[(Vec3, Vec3)], background: Vec3) -> VariantFrame {
+/// Hits from the density cubes, shaded by the student with diffuse from its net, or from
+/// `diffuse` cubes when given.
+#[allow(clippy::too_many_arguments)]
+pub fn render_cubes(
+    student: &Student,
+    density: &TextureCubes,
+    diffuse: Option<&TextureCubes>,
+    step: f32,
+    alpha_min: f32,
+    rays: &[(Vec3, Vec3)],
+    background: Vec3,
+) -> VariantFrame {
     let start = Instant::now();
     let settings = RenderSettings::default();
     let marched: Vec<MarchHit> = rays.par_iter().map(|&(o, d)| model::march(density, o, d, step, &settings)).collect();
     let march_ms = start.elapsed().as_secs_f64() * 1e3;
-    let (rgb, hits) = shade_student(student, rays, &marched, alpha_min, background);
+    let (rgb, hits) = shade_student(student, diffuse, rays, &marched, alpha_min, background);
     VariantFrame { rgb, march_ms, total_ms: start.elapsed().as_secs_f64() * 1e3, hits }
 }
 

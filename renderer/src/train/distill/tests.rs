@@ -18,19 +18,23 @@ fn unit(rng: &mut SmallRng) -> Vec3 {
     Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
 }
 
-/// A student over [-1, 1]³ with a PSH on the vertices of a random cloud of points.
-fn small_student(rng: &mut SmallRng) -> (Student, Vec<StudentRay>) {
+/// A student over [-1, 1]³ with a PSH on the vertices of a random cloud of points (or the
+/// ablation nets `cfg` asks for).
+fn small_student(rng: &mut SmallRng, variant: impl Fn(&mut DistillConfig)) -> (Student, Vec<StudentRay>) {
     let bounds = Aabb::cube(1.0);
     let mut cfg = DistillConfig::tiny(10);
     cfg.diffuse_encoding = HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, finest_resolution: 32 };
     cfg.psh_grid = 16;
+    variant(&mut cfg);
     let points: Vec<Vec3> = (0..24).map(|_| 0.9 * unit(rng)).collect();
     let vertices = marked_cells(&bounds, cfg.psh_grid, 1, points.iter().copied(), 0);
     let psh = SpatialHash::build(bounds, cfg.psh_grid, cfg.psh_features, &vertices, |_, o| o.fill(0.0), 3).unwrap();
     let mut student = Student::new(bounds, psh, &cfg, rng);
     // Sizeable features everywhere, so every group matters to the loss.
-    student.diffuse_grid.params.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
-    student.psh.values.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
+    if let Some(net) = &mut student.diffuse {
+        net.grid.params.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
+    }
+    student.encoding.params_mut().iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
     let rays = points
         .iter()
         .map(|&p| StudentRay {
@@ -49,19 +53,20 @@ fn loss(student: &Student, rays: &[StudentRay]) -> f64 {
     student.forward(rays, 4).iter().map(|o| (o.rgb_error + o.alpha_error) as f64).sum::<f64>() / (4 * rays.len()) as f64
 }
 
-#[test]
-fn distill_student_gradients_match_finite_differences() {
-    let mut rng = SmallRng::seed_from_u64(7);
-    let (mut student, rays) = small_student(&mut rng);
+/// Checks 20 gradients of each parameter group the student has (the largest 12 and 8 at
+/// random) against central differences.
+fn check_gradients(mut student: Student, rays: &[StudentRay], rng: &mut SmallRng) {
     let mut grads = student.zero_gradients();
-    let outputs = student.gradients(&rays, 4, &mut grads);
+    let outputs = student.gradients(rays, 4, &mut grads);
     assert_eq!(outputs.len(), rays.len());
-    // The clamp of c_d + t·c_s must be exercised both ways for the check to mean something;
-    // with random nets it is mostly inside (0, 1).
     let eps = 1e-3f32;
-    let groups: [&[f32]; 4] = [&grads.diffuse_grid, &grads.diffuse_mlp, &grads.psh, &grads.specular_mlp];
-    let names = ["diffuse grid", "diffuse MLP", "PSH features", "specular MLP"];
+    let groups: [&[f32]; 4] = [&grads.diffuse_grid, &grads.diffuse_mlp, &grads.encoding, &grads.specular_mlp];
+    let names = ["diffuse grid", "diffuse MLP", "E_s features", "specular MLP"];
     for (group, g) in groups.iter().enumerate() {
+        if g.is_empty() {
+            assert!(group < 2 && student.diffuse.is_none(), "{} has no gradients", names[group]);
+            continue;
+        }
         let mut order: Vec<usize> = (0..g.len()).collect();
         order.sort_by(|&i, &j| g[j].abs().total_cmp(&g[i].abs()));
         let large = order.iter().take_while(|&&i| g[i].abs() > 1e-5).count();
@@ -70,18 +75,23 @@ fn distill_student_gradients_match_finite_differences() {
         picks.extend((0..8).map(|_| order[rng.random_range(12..large)]));
         let mut agreed = 0;
         for &i in &picks {
-            let get = |s: &Student| [&s.diffuse_grid.params[..], s.diffuse_mlp.params(), &s.psh.values[..], s.specular_mlp.params()][group][i];
+            let get = |s: &Student| match group {
+                0 => s.diffuse.as_ref().unwrap().grid.params[i],
+                1 => s.diffuse.as_ref().unwrap().mlp.params()[i],
+                2 => s.encoding.params()[i],
+                _ => s.specular_mlp.params()[i],
+            };
             let set = |s: &mut Student, v: f32| match group {
-                0 => s.diffuse_grid.params[i] = v,
-                1 => s.diffuse_mlp.update(|p| p[i] = v),
-                2 => s.psh.values[i] = v,
+                0 => s.diffuse.as_mut().unwrap().grid.params[i] = v,
+                1 => s.diffuse.as_mut().unwrap().mlp.update(|p| p[i] = v),
+                2 => s.encoding.params_mut()[i] = v,
                 _ => s.specular_mlp.update(|p| p[i] = v),
             };
             let keep = get(&student);
             set(&mut student, keep + eps);
-            let up = loss(&student, &rays);
+            let up = loss(&student, rays);
             set(&mut student, keep - eps);
-            let down = loss(&student, &rays);
+            let down = loss(&student, rays);
             set(&mut student, keep);
             let fd = (up - down) / (2.0 * eps as f64);
             let a = g[i] as f64;
@@ -89,6 +99,55 @@ fn distill_student_gradients_match_finite_differences() {
         }
         assert!(agreed >= 18, "{}: {agreed} of 20 gradients agree", names[group]);
     }
+}
+
+#[test]
+fn distill_student_gradients_match_finite_differences() {
+    let mut rng = SmallRng::seed_from_u64(7);
+    // The asset's student (PSH, diffuse net read through its bake lattice) and the two
+    // ablation students of Table 5: hash-grid E_s with and without a diffuse net.
+    let (student, rays) = small_student(&mut rng, |_| {});
+    assert!(matches!(student.encoding, SpecularEncoding::Psh(_)) && student.diffuse_lattice.is_some());
+    check_gradients(student, &rays, &mut rng);
+    // Fine levels, so each entry feeds few rays and few ReLU or clamp kinks lie within ±eps.
+    let grid = HashGridConfig { levels: 2, log2_table_size: 12, base_resolution: 16, finest_resolution: 32 };
+    let (student, rays) = small_student(&mut rng, |c| {
+        c.specular_hash_grid = Some(grid);
+        c.train_on_bake_lattice = false;
+    });
+    assert!(matches!(student.encoding, SpecularEncoding::HashGrid(_)) && student.diffuse_lattice.is_none());
+    check_gradients(student, &rays, &mut rng);
+    let (student, rays) = small_student(&mut rng, |c| {
+        c.specular_hash_grid = Some(grid);
+        c.diffuse_net = false;
+    });
+    assert!(student.diffuse.is_none() && student.diffuse_lattice.is_none());
+    check_gradients(student, &rays, &mut rng);
+}
+
+/// Diffuse colour given per ray replaces the net exactly; without a diffuse net the colour is
+/// the specular net's alone.
+#[test]
+fn distill_student_takes_given_diffuse_and_runs_without_a_diffuse_net() {
+    let mut rng = SmallRng::seed_from_u64(8);
+    let (student, rays) = small_student(&mut rng, |c| c.train_on_bake_lattice = false);
+    let own = student.forward(&rays, 4);
+    let points: Vec<Vec3> = rays.iter().map(|r| r.p_hit).collect();
+    let given: Vec<[f32; 4]> = student.diffuse(&points).chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect();
+    let with_given = student.forward_with_diffuse(&rays, &given, 4);
+    for (a, b) in own.iter().zip(&with_given) {
+        assert!((a.pixel - b.pixel).abs().max_element() < 1e-6 && (a.alpha - b.alpha).abs() < 1e-6, "{a:?} vs {b:?}");
+    }
+    let white = vec![[1.0, 1.0, 1.0, 0.0]; rays.len()];
+    for (o, r) in student.forward_with_diffuse(&rays, &white, 4).iter().zip(&rays) {
+        // c = 1 whatever the specular net says: pixel = α + (1 − α)·bg.
+        let want = Vec3::splat(o.alpha) + (1.0 - o.alpha) * r.background;
+        assert!((o.pixel - want).abs().max_element() < 1e-6);
+    }
+    let (bare, rays) = small_student(&mut rng, |c| c.diffuse_net = false);
+    assert!(bare.diffuse(&points).chunks_exact(4).all(|c| c == [0.0, 0.0, 0.0, 1.0]));
+    let zero_tint_one = vec![[0.0, 0.0, 0.0, 1.0]; rays.len()];
+    assert_eq!(bare.forward(&rays, 4), bare.forward_with_diffuse(&rays, &zero_tint_one, 4));
 }
 
 #[test]
@@ -142,11 +201,11 @@ fn pipeline() -> &'static Pipeline {
         let mut distiller = Distiller::new(geometry, cfg).unwrap();
         let stats: Vec<DistillStats> = (0..STUDENT_STEPS).map(|_| distiller.train_step(&train)).collect();
         let mean = |s: &[DistillStats]| s.iter().map(|s| s.psnr()).sum::<f64>() / s.len() as f64;
-        let asset = distiller.bake(density, step, "synthetic-mixed", serde_json::json!({ "test": true }));
+        let asset = distiller.bake(density, step, "synthetic-mixed", serde_json::json!({ "test": true })).unwrap();
         let asset_psnr = score(&|im| render_image(&asset, im, Vec3::ONE));
         let mlp_psnr = score(&|im| {
             let rays: Vec<(Vec3, Vec3)> = im.rays().collect();
-            crate::train::variants::render_cubes_mlp(&distiller.student, &asset.density, step, asset.march.alpha_min, &rays, Vec3::ONE).rgb
+            crate::train::variants::render_cubes(&distiller.student, &asset.density, None, step, asset.march.alpha_min, &rays, Vec3::ONE).rgb
         });
         let train_psnr = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render_image(&asset, im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
         println!(

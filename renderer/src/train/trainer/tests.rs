@@ -127,6 +127,54 @@ fn train_march_follows_the_renderer_step_rule_and_skips_empty_cells() {
     assert!(none.is_empty());
 }
 
+/// Rendering evaluates σ a window at a time and stops at `T < early_stop`; it must give what
+/// evaluating every sample and compositing front to back with the same stop gives, for rays
+/// that never stop (thin field: every window), stop within the first window, or stop later.
+#[test]
+fn train_render_with_density_windows_matches_evaluating_every_sample() {
+    let mut trainer = Trainer::new(TrainConfig::tiny());
+    let mut rng = SmallRng::seed_from_u64(5);
+    trainer.field.grid.params.iter_mut().for_each(|v| *v = rng.random_range(-1.0..1.0));
+    let raw_bias = trainer.field.density_mlp.params().len() - GEO_FEATURES;
+    let rays = random_rays(96, 6);
+    let delta = trainer.step_size();
+    for bias in [-6.0f32, 2.0, 3.5] {
+        trainer.field.density_mlp.update(|p| p[raw_bias] = bias);
+        let mut stops = [0usize; 3];
+        let rendered = trainer.render(&rays.iter().map(|r| (r.origin, r.dir)).collect::<Vec<_>>(), Vec3::splat(0.25));
+        for (ray, &(rgb, opacity)) in rays.iter().zip(&rendered) {
+            let mut points = Vec::new();
+            trainer.march(ray.origin, ray.dir, 0.5, &mut points);
+            let mut tape = FieldTape::default();
+            trainer.field.forward_density(&points, &mut tape);
+            let mut used = 0;
+            let mut t = 1.0f32;
+            while used < points.len() && t >= trainer.config.early_stop_transmittance {
+                t *= (-tape.sigma[used] * delta).exp();
+                used += 1;
+            }
+            stops[if used == points.len() { 0 } else if used <= DENSITY_WINDOW { 1 } else { 2 }] += 1;
+            let sh = vec![sh4(ray.dir); used];
+            trainer.field.forward_colour((0..used as u32).collect(), &sh, &mut tape);
+            let (mut c, mut t) = (Vec3::ZERO, 1.0f32);
+            for i in 0..used {
+                let a = -(-tape.sigma[i] * delta).exp_m1();
+                c += t * a * Vec3::from_slice(&tape.rgb[3 * i..3 * i + 3]);
+                t *= 1.0 - a;
+            }
+            c += t * Vec3::splat(0.25);
+            assert!((c - rgb).abs().max_element() < 1e-5 && (1.0 - t - opacity).abs() < 1e-5, "bias {bias}: {c} vs {rgb}");
+        }
+        println!("bias {bias}: rays never stopping / stopping in the first window / later: {stops:?}");
+        assert!(stops.iter().sum::<usize>() == rays.len());
+        match bias {
+            -6.0 => assert!(stops[0] > 80, "{stops:?}"),
+            2.0 => assert!(stops[2] > 10, "{stops:?}"),
+            _ => assert!(stops[1] > 10, "{stops:?}"),
+        }
+    }
+}
+
 use crate::test_util::TempDir;
 
 /// The training split of a freshly generated synthetic scene (`views` images of `size`²).
