@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::{
-    cubes::{Aabb, TextureCubes},
+    cubes::{Aabb, CubeStorage, TextureCubes},
     mlp::{HIDDEN, SpecularMlp},
     psh::SpatialHash,
     sh::SH_COEFFS,
@@ -59,6 +59,12 @@ pub struct CubesMeta {
     pub grid: u32,
     pub brick: u32,
     pub bricks: u32,
+    /// Value storage (`f16` when absent; density is always `f16`).
+    #[serde(default, skip_serializing_if = "CubeStorage::is_f16")]
+    pub storage: CubeStorage,
+    /// The index grid is i16 (written when there are fewer than 32768 bricks); i32 when absent.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub index_i16: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -67,6 +73,12 @@ pub struct PshMeta {
     pub table_edge: u32,
     pub offset_edge: u32,
     pub features: u32,
+}
+
+impl CubesMeta {
+    fn of(c: &TextureCubes) -> Self {
+        Self { grid: c.grid, brick: c.brick, bricks: c.brick_count() as u32, storage: c.storage, index_i16: c.narrow_index() }
+    }
 }
 
 /// Default ray-marching settings the asset was made for.
@@ -118,13 +130,34 @@ fn sha_hex(bytes: &[u8]) -> String {
 fn f16_bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| half::f16::from_f32(*x).to_le_bytes()).collect()
 }
+fn value_bytes(c: &TextureCubes) -> Vec<u8> {
+    match c.storage {
+        CubeStorage::F16 => f16_bytes(&c.values),
+        CubeStorage::Unorm8 => c.values.iter().map(|&v| CubeStorage::unorm8(v)).collect(),
+    }
+}
+fn index_bytes(c: &TextureCubes) -> Vec<u8> {
+    if c.narrow_index() { c.index.iter().flat_map(|&i| (i as i16).to_le_bytes()).collect() } else { le_bytes(&c.index) }
+}
+fn index_dtype(m: &CubesMeta) -> Dtype {
+    if m.index_i16 { Dtype::I16 } else { Dtype::I32 }
+}
+fn value_dtype(s: CubeStorage) -> Dtype {
+    match s {
+        CubeStorage::F16 => Dtype::F16,
+        CubeStorage::Unorm8 => Dtype::U8,
+    }
+}
 fn le_bytes<T: bytemuck::Pod>(v: &[T]) -> Vec<u8> {
     bytemuck::cast_slice(v).to_vec()
 }
 
 /// Tensor names, dtypes and shapes implied by the metadata, computed with checked arithmetic
 /// so a hostile size field is an error instead of an allocation.
-fn expected_tensors(m: &AssetMeta) -> Result<Vec<(&'static str, Dtype, Vec<usize>)>, AssetError> {
+/// A tensor's name, dtype and shape.
+type TensorSpec = (&'static str, Dtype, Vec<usize>);
+
+fn expected_tensors(m: &AssetMeta) -> Result<Vec<TensorSpec>, AssetError> {
     let cube = |c: &CubesMeta, what: &str| -> Result<(usize, usize), AssetError> {
         if c.grid == 0 || c.grid > MAX_GRID || c.brick == 0 || c.brick > MAX_BRICK || c.grid * c.brick > MAX_FINE {
             return Err(invalid(format!("{what} grid {}×{} is outside the supported range", c.grid, c.brick)));
@@ -132,9 +165,15 @@ fn expected_tensors(m: &AssetMeta) -> Result<Vec<(&'static str, Dtype, Vec<usize
         if c.bricks as u64 > (c.grid as u64).pow(3) {
             return Err(invalid(format!("{what} has {} bricks for a {}³ grid", c.bricks, c.grid)));
         }
+        if c.index_i16 && c.bricks > i16::MAX as u32 {
+            return Err(invalid(format!("{what} has {} bricks, too many for an i16 index", c.bricks)));
+        }
         Ok((c.grid as usize, c.brick as usize + 1))
     };
     let (bd, ed) = cube(&m.density, "density")?;
+    if !m.density.storage.is_f16() {
+        return Err(invalid("density cubes must be stored as f16"));
+    }
     let (bc, ec) = cube(&m.diffuse, "diffuse")?;
     let p = &m.psh;
     if p.grid == 0 || p.grid > crate::psh::MAX_COORD || p.table_edge == 0 || p.table_edge > MAX_TABLE_EDGE {
@@ -149,10 +188,10 @@ fn expected_tensors(m: &AssetMeta) -> Result<Vec<(&'static str, Dtype, Vec<usize
     }
     let (m3, r3) = ((p.table_edge as usize).pow(3), (p.offset_edge as usize).pow(3));
     Ok(vec![
-        ("density.index", Dtype::I32, vec![bd, bd, bd]),
-        ("density.values", Dtype::F16, vec![m.density.bricks as usize, ed, ed, ed]),
-        ("diffuse.index", Dtype::I32, vec![bc, bc, bc]),
-        ("diffuse.values", Dtype::F16, vec![m.diffuse.bricks as usize, ec, ec, ec, 4]),
+        ("density.index", index_dtype(&m.density), vec![bd, bd, bd]),
+        ("density.values", value_dtype(m.density.storage), vec![m.density.bricks as usize, ed, ed, ed]),
+        ("diffuse.index", index_dtype(&m.diffuse), vec![bc, bc, bc]),
+        ("diffuse.values", value_dtype(m.diffuse.storage), vec![m.diffuse.bricks as usize, ec, ec, ec, 4]),
         ("psh.keys", Dtype::U32, vec![m3]),
         ("psh.offsets", Dtype::U32, vec![r3]),
         ("psh.values", Dtype::F16, vec![m3, p.features as usize]),
@@ -173,8 +212,8 @@ impl Asset {
             name: self.name.clone(),
             bounds: self.bounds,
             march: self.march,
-            density: CubesMeta { grid: self.density.grid, brick: self.density.brick, bricks: self.density.brick_count() as u32 },
-            diffuse: CubesMeta { grid: self.diffuse.grid, brick: self.diffuse.brick, bricks: self.diffuse.brick_count() as u32 },
+            density: CubesMeta::of(&self.density),
+            diffuse: CubesMeta::of(&self.diffuse),
             psh: PshMeta {
                 grid: self.psh.grid,
                 table_edge: self.psh.table_edge,
@@ -192,10 +231,10 @@ impl Asset {
         self.validate()?;
         let mut meta = self.meta_without_checksums();
         let data: Vec<(&'static str, Vec<u8>)> = vec![
-            ("density.index", le_bytes(&self.density.index)),
-            ("density.values", f16_bytes(&self.density.values)),
-            ("diffuse.index", le_bytes(&self.diffuse.index)),
-            ("diffuse.values", f16_bytes(&self.diffuse.values)),
+            ("density.index", index_bytes(&self.density)),
+            ("density.values", value_bytes(&self.density)),
+            ("diffuse.index", index_bytes(&self.diffuse)),
+            ("diffuse.values", value_bytes(&self.diffuse)),
             ("psh.keys", le_bytes(&self.psh.keys)),
             ("psh.offsets", le_bytes(&self.psh.offsets)),
             ("psh.values", f16_bytes(&self.psh.values)),
@@ -264,13 +303,24 @@ impl Asset {
         let f16s = |n: &str| -> Vec<f32> {
             tensors[n].chunks_exact(2).map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
         };
-        let cubes = |m: &CubesMeta, channels, prefix: &str| TextureCubes {
-            bounds: meta.bounds,
-            grid: m.grid,
-            brick: m.brick,
-            channels,
-            index: i32s(&format!("{prefix}.index")),
-            values: f16s(&format!("{prefix}.values")),
+        let cubes = |m: &CubesMeta, channels, prefix: &str| {
+            let values = format!("{prefix}.values");
+            TextureCubes {
+                bounds: meta.bounds,
+                grid: m.grid,
+                brick: m.brick,
+                channels,
+                index: if m.index_i16 {
+                    bytemuck::pod_collect_to_vec::<u8, i16>(tensors[format!("{prefix}.index").as_str()]).into_iter().map(i32::from).collect()
+                } else {
+                    i32s(&format!("{prefix}.index"))
+                },
+                values: match m.storage {
+                    CubeStorage::F16 => f16s(&values),
+                    CubeStorage::Unorm8 => tensors[values.as_str()].iter().map(|&b| b as f32 / 255.0).collect(),
+                },
+                storage: m.storage,
+            }
         };
         let asset = Asset {
             name: meta.name.clone(),
@@ -344,6 +394,12 @@ impl Asset {
         if self.density.values.iter().any(|&v| v < 0.0) {
             return Err(invalid("negative density"));
         }
+        if !self.density.storage.is_f16() {
+            return Err(invalid("density cubes must be stored as f16"));
+        }
+        if self.diffuse.storage == CubeStorage::Unorm8 && self.diffuse.values.iter().any(|&v| CubeStorage::Unorm8.round(v) != v) {
+            return Err(invalid("diffuse values are not 8-bit unorm values"));
+        }
         if self.psh.bounds != self.bounds {
             return Err(invalid("PSH bounds differ from the asset bounds"));
         }
@@ -371,7 +427,7 @@ impl Asset {
                 },
                 MemoryPart {
                     part: "diffuse cubes",
-                    detail: format!("{}³ index × {}³ bricks, {} of {} cells", c.grid, c.brick, c.brick_count(), c.grid.pow(3)),
+                    detail: format!("{}³ index × {}³ bricks, {} of {} cells, {:?}", c.grid, c.brick, c.brick_count(), c.grid.pow(3), c.storage),
                     stored_bytes: c.stored_bytes(),
                     dense_bytes: c.dense_bytes(),
                 },

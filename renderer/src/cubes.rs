@@ -3,8 +3,9 @@
 //! so trilinear filtering never reads across bricks. Used for density (1 channel) and for the
 //! baked diffuse colour + specular tint (4 channels). Empty cells read as zero.
 //!
-//! Values are stored as f16 in assets and in the GPU atlas (hardware-filterable); here they are
-//! kept as the same f16-rounded values in f32 so the CPU reference sees exactly what the GPU sees.
+//! Values are stored as f16, or for values in [0, 1] (diffuse colour and tint) optionally as
+//! 8-bit unorm, in assets and in the GPU atlas (both hardware-filterable); here they are kept
+//! as the same rounded values in f32 so the CPU reference sees exactly what the GPU sees.
 
 use glam::{UVec3, Vec3};
 use serde::{Deserialize, Serialize};
@@ -34,6 +35,43 @@ impl Aabb {
     }
 }
 
+/// How corner values are stored (in assets and in the GPU atlas).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CubeStorage {
+    /// IEEE half floats: any finite value up to 65504.
+    #[default]
+    F16,
+    /// `round(255 v) / 255` for `v` in [0, 1]: half the bytes, 1/510 worst-case error.
+    Unorm8,
+}
+
+impl CubeStorage {
+    pub fn bytes_per_value(self) -> u64 {
+        match self {
+            Self::F16 => 2,
+            Self::Unorm8 => 1,
+        }
+    }
+
+    /// `v` as it reads back after storing.
+    pub fn round(self, v: f32) -> f32 {
+        match self {
+            Self::F16 => half::f16::from_f32(v).to_f32(),
+            Self::Unorm8 => Self::unorm8(v) as f32 / 255.0,
+        }
+    }
+
+    /// The stored byte of an [`Self::Unorm8`] value (NaN stores 0).
+    pub fn unorm8(v: f32) -> u8 {
+        (v.clamp(0.0, 1.0) * 255.0).round() as u8
+    }
+
+    pub fn is_f16(&self) -> bool {
+        *self == Self::F16
+    }
+}
+
 /// Sparse bricked grid with `channels` values per corner sample.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TextureCubes {
@@ -45,8 +83,10 @@ pub struct TextureCubes {
     pub channels: u32,
     /// `b³` entries, x fastest; brick number or −1 for empty.
     pub index: Vec<i32>,
-    /// `n_bricks × (r+1)³ × channels`, corner x fastest, channels innermost.
+    /// `n_bricks × (r+1)³ × channels`, corner x fastest, channels innermost; values as
+    /// `storage` reads them back.
     pub values: Vec<f32>,
+    pub storage: CubeStorage,
 }
 
 impl TextureCubes {
@@ -156,7 +196,7 @@ impl TextureCubes {
                 n += 1;
             }
         }
-        let mut cubes = Self { bounds, grid, brick, channels, index, values: Vec::new() };
+        let mut cubes = Self { bounds, grid, brick, channels, index, values: Vec::new(), storage: CubeStorage::F16 };
         let points = cubes.corner_points();
         let mut values = values(&points);
         assert_eq!(values.len(), points.len() * channels as usize, "bake_batched: one value per corner and channel");
@@ -206,13 +246,26 @@ impl TextureCubes {
         out
     }
 
-    /// Bytes as stored (index i32 + f16 values).
-    pub fn stored_bytes(&self) -> u64 {
-        self.index.len() as u64 * 4 + self.values.len() as u64 * 2
+    /// The same cubes stored as `storage` (values rounded to what it reads back).
+    pub fn stored_as(mut self, storage: CubeStorage) -> Self {
+        self.values.iter_mut().for_each(|v| *v = storage.round(*v));
+        self.storage = storage;
+        self
     }
-    /// Bytes a dense f16 grid of the same fine resolution would take.
+
+    /// Whether assets store the index grid as i16 (fewer than 32768 bricks) rather than i32.
+    pub fn narrow_index(&self) -> bool {
+        self.brick_count() <= i16::MAX as usize
+    }
+
+    /// Bytes as stored (index + values).
+    pub fn stored_bytes(&self) -> u64 {
+        let index = if self.narrow_index() { 2 } else { 4 };
+        self.index.len() as u64 * index + self.values.len() as u64 * self.storage.bytes_per_value()
+    }
+    /// Bytes a dense grid of the same fine resolution and storage would take.
     pub fn dense_bytes(&self) -> u64 {
-        (self.fine_res() as u64 + 1).pow(3) * self.channels as u64 * 2
+        (self.fine_res() as u64 + 1).pow(3) * self.channels as u64 * self.storage.bytes_per_value()
     }
 }
 

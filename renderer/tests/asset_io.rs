@@ -5,6 +5,7 @@ mod common;
 
 use nephele_renderer::{
     Asset, AssetError,
+    cubes::CubeStorage,
     procedural::{self, ProceduralConfig, Scene},
 };
 use rand::{Rng, SeedableRng, rngs::SmallRng};
@@ -78,7 +79,7 @@ fn forge(bytes: &[u8], edit: impl Fn(&mut serde_json::Value)) -> Vec<u8> {
     header["__metadata__"]["nolf"] = new_meta.into();
     header["__metadata__"]["nolf_sha256"] = sha.into();
     let mut h = serde_json::to_vec(&header).unwrap();
-    while h.len() % 8 != 0 {
+    while !h.len().is_multiple_of(8) {
         h.push(b' ');
     }
     let mut out = (h.len() as u64).to_le_bytes().to_vec();
@@ -124,4 +125,83 @@ fn memory_report_compares_with_dense_grids() {
     }
     let text = m.to_string();
     assert!(text.contains("density cubes") && text.contains("PSH table") && text.contains("total"));
+}
+
+/// 8-bit unorm diffuse cubes: one byte per value, exact round trip, a stated rounding error;
+/// density must stay f16 (σ is unbounded) and a file that claims otherwise is refused.
+#[test]
+fn unorm8_diffuse_round_trips_and_density_stays_f16() {
+    let half = tiny();
+    let mut a = half.clone();
+    a.diffuse = a.diffuse.clone().stored_as(CubeStorage::Unorm8);
+    let max_err = half.diffuse.values.iter().zip(&a.diffuse.values).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(max_err <= 0.5 / 255.0 + 1e-3, "unorm8 rounding error {max_err}");
+    let bytes = a.to_bytes().unwrap();
+    assert_eq!(Asset::from_bytes(&bytes).unwrap(), a);
+    assert_eq!(half.memory().stored_bytes() - a.memory().stored_bytes(), a.diffuse.values.len() as u64);
+    // Old files (no storage field) are f16; writing f16 adds no field.
+    let meta = |b: &[u8]| -> serde_json::Value {
+        let n = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
+        let header: serde_json::Value = serde_json::from_slice(&b[8..8 + n]).unwrap();
+        serde_json::from_str(header["__metadata__"]["nolf"].as_str().unwrap()).unwrap()
+    };
+    assert!(meta(&half.to_bytes().unwrap())["diffuse"].get("storage").is_none());
+    assert_eq!(meta(&bytes)["diffuse"]["storage"], "unorm8");
+    // Density as unorm8: refused when saving and when a forged file claims it.
+    let mut bad = half.clone();
+    bad.density = bad.density.clone().stored_as(CubeStorage::Unorm8);
+    assert!(bad.to_bytes().unwrap_err().to_string().contains("density cubes must be stored as f16"));
+    let err = Asset::from_bytes(&forge(&half.to_bytes().unwrap(), |m| m["density"]["storage"] = "unorm8".into())).unwrap_err();
+    assert!(err.to_string().contains("density cubes must be stored as f16"), "{err}");
+    // A diffuse tensor whose dtype disagrees with the metadata is a shape error.
+    let err = Asset::from_bytes(&forge(&half.to_bytes().unwrap(), |m| m["diffuse"]["storage"] = "unorm8".into())).unwrap_err();
+    assert!(matches!(err, AssetError::Shape { name: "diffuse.values", .. }), "{err}");
+}
+
+/// Index grids are written as i16 while there are fewer than 32768 bricks (half the bytes) and
+/// read back exactly; files written with i32 indices (before this existed) still load.
+#[test]
+fn small_index_grids_are_i16_and_i32_files_still_load() {
+    let a = tiny();
+    assert!(a.density.narrow_index() && a.diffuse.narrow_index());
+    let bytes = a.to_bytes().unwrap();
+    assert_eq!(Asset::from_bytes(&bytes).unwrap(), a);
+    // An i32 file: the same tensors widened, the flag dropped from the metadata.
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    let mut meta: serde_json::Value = serde_json::from_str(header["__metadata__"]["nolf"].as_str().unwrap()).unwrap();
+    assert_eq!(meta["density"]["index_i16"], true);
+    let mut tensors = Vec::new();
+    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    for (name, view) in file.tensors() {
+        let (dtype, data) = if name.ends_with(".index") {
+            let wide: Vec<u8> = view.data().chunks_exact(2).flat_map(|c| (i16::from_le_bytes([c[0], c[1]]) as i32).to_le_bytes()).collect();
+            (safetensors::Dtype::I32, wide)
+        } else {
+            (view.dtype(), view.data().to_vec())
+        };
+        use sha2::Digest;
+        let sha: String = sha2::Sha256::digest(&data).iter().map(|b| format!("{b:02x}")).collect();
+        meta["checksums"][&name] = sha.into();
+        tensors.push((name, dtype, view.shape().to_vec(), data));
+    }
+    for part in ["density", "diffuse"] {
+        meta[part].as_object_mut().unwrap().remove("index_i16");
+    }
+    let json = serde_json::to_string(&meta).unwrap();
+    use sha2::Digest;
+    let sha: String = sha2::Sha256::digest(json.as_bytes()).iter().map(|b| format!("{b:02x}")).collect();
+    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> =
+        tensors.iter().map(|(n, d, s, b)| (n.clone(), safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap())).collect();
+    let info = std::collections::HashMap::from([("nolf".to_string(), json), ("nolf_sha256".to_string(), sha)]);
+    let wide = safetensors::serialize(views, Some(info)).unwrap();
+    assert!(wide.len() > bytes.len());
+    assert_eq!(Asset::from_bytes(&wide).unwrap(), a);
+    // The flag with more bricks than i16 can address is refused by name.
+    let err = Asset::from_bytes(&forge(&bytes, |m| {
+        m["diffuse"]["grid"] = 64.into();
+        m["diffuse"]["bricks"] = 40_000.into();
+    }))
+    .unwrap_err();
+    assert!(err.to_string().contains("too many for an i16 index"), "{err}");
 }

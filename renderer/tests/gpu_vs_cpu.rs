@@ -122,3 +122,22 @@ fn reused_buffers_give_the_same_frames() {
         assert_eq!(reused.stats.hits, fresh.stats.hits);
     }
 }
+
+/// 8-bit unorm diffuse cubes go to an Rgba8Unorm atlas; the GPU still agrees with the CPU
+/// reading the same rounded values, and the frames stay within a level of the f16 asset's.
+#[test]
+fn unorm8_diffuse_atlas_matches_the_cpu() {
+    let Some(gpu) = common::gpu() else { return };
+    let half = common::fixture();
+    let mut asset = (*half).clone();
+    asset.diffuse = asset.diffuse.clone().stored_as(nephele_renderer::cubes::CubeStorage::Unorm8);
+    let asset = std::sync::Arc::new(asset);
+    let view = [ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 35.0, 25.0, Intrinsics::from_fov_x(128, 96, 0.7)))];
+    let settings = RenderSettings::default();
+    let c = CpuBackend.prepare(asset.clone()).unwrap().render(&view, &settings).unwrap();
+    let g = gpu.prepare(asset.clone()).unwrap().render(&view, &settings).unwrap();
+    check("unorm8 diffuse", &common::diff(&c.frames[0], &g.frames[0], 4, 2.0 * asset.march.step));
+    let f = CpuBackend.prepare(half.clone()).unwrap().render(&view, &settings).unwrap();
+    let d = common::diff(&f.frames[0], &c.frames[0], 2, 2.0 * asset.march.step);
+    assert!(d.mean_abs <= 0.25 && d.frac_over <= 0.001, "unorm8 vs f16 on the CPU: {d:?}");
+}

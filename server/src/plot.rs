@@ -1,6 +1,7 @@
-//! A small line chart written straight to PNG (no plotting dependency): axes with ticks and
-//! numeric labels in a built-in 3×5 pixel font, one coloured polyline with markers per series,
-//! and a legend of coloured swatches. Enough for the benchmark figures.
+//! A small line chart written straight to PNG (no plotting dependency): a title, axes with
+//! ticks, numeric labels and axis names in a built-in 3×5 pixel font (capitals, digits and a
+//! little punctuation), one coloured polyline with markers per series, and a legend of
+//! coloured swatches with the series' names. Enough for the benchmark figures.
 
 use std::path::Path;
 
@@ -16,7 +17,7 @@ const W: usize = 720;
 const H: usize = 460;
 const LEFT: usize = 70;
 const RIGHT: usize = 20;
-const TOP: usize = 40;
+const TOP: usize = 64;
 const BOTTOM: usize = 50;
 
 /// 3×5 glyphs, rows top to bottom, bits left to right.
@@ -35,6 +36,39 @@ fn glyph(c: char) -> Option<[u8; 5]> {
         '.' => [0, 0, 0, 0, 2],
         '-' => [0, 0, 7, 0, 0],
         'x' => [0, 5, 2, 5, 0],
+        'A' => [2, 5, 7, 5, 5],
+        'B' => [6, 5, 6, 5, 6],
+        'C' => [3, 4, 4, 4, 3],
+        'D' => [6, 5, 5, 5, 6],
+        'E' => [7, 4, 6, 4, 7],
+        'F' => [7, 4, 6, 4, 4],
+        'G' => [3, 4, 5, 5, 3],
+        'H' => [5, 5, 7, 5, 5],
+        'I' => [7, 2, 2, 2, 7],
+        'J' => [1, 1, 1, 5, 2],
+        'K' => [5, 5, 6, 5, 5],
+        'L' => [4, 4, 4, 4, 7],
+        'M' => [5, 7, 7, 5, 5],
+        'N' => [6, 5, 5, 5, 5],
+        'O' => [2, 5, 5, 5, 2],
+        'P' => [6, 5, 6, 4, 4],
+        'Q' => [2, 5, 5, 6, 3],
+        'R' => [6, 5, 6, 5, 5],
+        'S' => [3, 4, 2, 1, 6],
+        'T' => [7, 2, 2, 2, 2],
+        'U' => [5, 5, 5, 5, 7],
+        'V' => [5, 5, 5, 5, 2],
+        'W' => [5, 5, 7, 7, 5],
+        'X' => [5, 5, 2, 5, 5],
+        'Y' => [5, 5, 2, 2, 2],
+        'Z' => [7, 1, 2, 4, 7],
+        ' ' => [0; 5],
+        '(' => [1, 2, 2, 2, 1],
+        ')' => [4, 2, 2, 2, 4],
+        '/' => [1, 1, 2, 4, 4],
+        ':' => [0, 2, 0, 2, 0],
+        '%' => [5, 1, 2, 4, 5],
+        ',' => [0, 0, 0, 2, 4],
         _ => return None,
     })
 }
@@ -64,10 +98,11 @@ impl Canvas {
             self.rect(x.round() as i64 - thick / 2, y.round() as i64 - thick / 2, thick, thick, rgb);
         }
     }
-    /// Text in the 3×5 font at `scale`; characters without a glyph leave a gap.
+    /// Text in the 3×5 font at `scale` (letters as capitals, but `x` between digits);
+    /// characters without a glyph leave a gap.
     fn text(&mut self, x: i64, y: i64, s: &str, scale: i64, rgb: [u8; 3]) {
         for (k, c) in s.chars().enumerate() {
-            if let Some(g) = glyph(c) {
+            if let Some(g) = glyph(c).or_else(|| glyph(c.to_ascii_uppercase())) {
                 for (row, bits) in g.iter().enumerate() {
                     for col in 0..3 {
                         if bits >> (2 - col) & 1 == 1 {
@@ -84,8 +119,20 @@ fn label(v: f64) -> String {
     if v.abs() >= 100.0 || v == v.round() { format!("{v:.0}") } else { format!("{v:.1}") }
 }
 
+/// Words on a chart.
+pub struct Labels<'a> {
+    pub title: &'a str,
+    pub x: &'a str,
+    pub y: &'a str,
+}
+
+/// Width in pixels of `s` in the 3×5 font at `scale`.
+fn text_width(s: &str, scale: i64) -> i64 {
+    4 * scale * s.chars().count() as i64 - scale
+}
+
 /// Draws the series on shared axes (linear x, log-10 y when `log_y`) and writes a PNG.
-pub fn line_chart(path: &Path, series: &[Series], log_y: bool) -> Result<()> {
+pub fn line_chart(path: &Path, labels: &Labels<'_>, series: &[Series], log_y: bool) -> Result<()> {
     let mut c = Canvas(vec![255; W * H * 3]);
     let pts = series.iter().flat_map(|s| s.points.iter().copied()).filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0));
     let (mut x_lo, mut x_hi, mut y_lo, mut y_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
@@ -134,8 +181,8 @@ pub fn line_chart(path: &Path, series: &[Series], log_y: bool) -> Result<()> {
     }
     c.line((LEFT as f64, TOP as f64), (LEFT as f64, (H - BOTTOM) as f64), ink, 2);
     c.line((LEFT as f64, (H - BOTTOM) as f64), ((W - RIGHT) as f64, (H - BOTTOM) as f64), ink, 2);
-    // Series and legend swatches (in series order, left to right at the top).
-    for (k, s) in series.iter().enumerate() {
+    // Series.
+    for s in series {
         let mut prev: Option<(f64, f64)> = None;
         for &(x, y) in s.points.iter().filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0)) {
             let p = to_px(x, y);
@@ -145,8 +192,17 @@ pub fn line_chart(path: &Path, series: &[Series], log_y: bool) -> Result<()> {
             c.rect(p.0 as i64 - 4, p.1 as i64 - 4, 9, 9, s.rgb);
             prev = Some(p);
         }
-        c.rect(LEFT as i64 + 10 + 60 * k as i64, 12, 40, 14, s.rgb);
     }
+    // Title, legend (swatch and name per series), axis names.
+    c.text(LEFT as i64, 8, labels.title, 2, ink);
+    let mut x = LEFT as i64;
+    for s in series {
+        c.rect(x, 30, 28, 10, s.rgb);
+        c.text(x + 36, 30, &s.name, 2, ink);
+        x += 36 + text_width(&s.name, 2) + 24;
+    }
+    c.text(8, TOP as i64 - 16, labels.y, 2, ink);
+    c.text(LEFT as i64 + (W - LEFT - RIGHT) as i64 / 2 - text_width(labels.x, 2) / 2, (H - 18) as i64, labels.x, 2, ink);
     let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
     let mut enc = png::Encoder::new(std::io::BufWriter::new(file), W as u32, H as u32);
     enc.set_color(png::ColorType::Rgb);
@@ -167,7 +223,7 @@ mod tests {
             Series { name: "a".into(), rgb: [220, 40, 40], points: vec![(1.0, 1000.0), (2.0, 300.0), (3.0, 90.0)] },
             Series { name: "b".into(), rgb: [40, 40, 220], points: vec![(1.0, 20.0), (2.0, 12.0), (3.0, f64::NAN)] },
         ];
-        line_chart(&path, &series, true).unwrap();
+        line_chart(&path, &Labels { title: "Title", x: "x axis", y: "y axis (log)" }, &series, true).unwrap();
         let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path).unwrap()));
         let mut reader = decoder.read_info().unwrap();
         let mut buf = vec![0; reader.output_buffer_size().unwrap()];

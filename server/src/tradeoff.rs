@@ -49,7 +49,7 @@ use nephele_renderer::{
     },
 };
 
-use crate::plot::{Series, line_chart};
+use crate::plot::{Labels, Series, line_chart};
 
 #[derive(Debug, Clone)]
 pub struct TradeoffOptions {
@@ -129,8 +129,9 @@ fn view_rays(view: &View) -> Vec<(Vec3, Vec3)> {
 
 fn asset_memory(asset: &Asset) -> (u64, u64) {
     let stored = asset.memory().stored_bytes();
-    // The CPU keeps f16 values as f32 and a transposed copy of the MLP.
-    let extra = 2 * (asset.density.values.len() + asset.diffuse.values.len() + asset.psh.values.len()) as u64
+    // The CPU keeps f16 and unorm8 values as f32 and a transposed copy of the MLP.
+    let widened = |c: &TextureCubes| (4 - c.storage.bytes_per_value()) * c.values.len() as u64;
+    let extra = widened(&asset.density) + widened(&asset.diffuse) + 2 * asset.psh.values.len() as u64
         + f32_bytes(asset.mlp.w0.len() + asset.mlp.w1.len() + asset.mlp.w2.len());
     (stored, extra)
 }
@@ -267,7 +268,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
             name: "+ diffuse cubes".into(),
             shading: Shading::Cubes(&split.distiller.student, Some(&split_diffuse)),
             model_bytes: density_stored + split_diffuse.stored_bytes() + specular_bytes(&split.distiller.student),
-            runtime_extra_bytes: density_extra + 2 * split_diffuse.values.len() as u64,
+            runtime_extra_bytes: density_extra + (4 - split_diffuse.storage.bytes_per_value()) * split_diffuse.values.len() as u64,
         },
     ];
     let mut asset_row = |name: String, asset: Arc<Asset>| {
@@ -372,8 +373,10 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     }
     b.finish_and_clear();
     let plot = opts.out.join("tradeoff_distance.png");
+    let title = format!("{w}x{h} frame time as the camera approaches, CPU");
     line_chart(
         &plot,
+        &Labels { title: &title, x: "camera distance (scene units)", y: "ms per frame (log)" },
         &[
             Series { name: "i-NGP".into(), rgb: [214, 39, 40], points: sweep.iter().map(|p| (p.distance, p.ngp_ms)).collect() },
             Series { name: "i-NOLF".into(), rgb: [31, 119, 180], points: sweep.iter().map(|p| (p.distance, p.nolf_ms)).collect() },

@@ -1,5 +1,5 @@
 //! wgpu compute backend for i-NOLF. Density and diffuse bricks live in 3D texture atlases
-//! (R16Float / Rgba16Float, hardware trilinear filtering); index grids, the perfect hash and
+//! (R16Float / Rgba16Float, or Rgba8Unorm for 8-bit diffuse; hardware trilinear filtering); index grids, the perfect hash and
 //! the MLP weights share one storage buffer of words. A batch of views of any sizes is one
 //! list of pixels, rendered in chunks: `march` (one thread per pixel) appends hits, `args`
 //! sizes an indirect dispatch, `shade` (one thread per hit) runs the networks — missed rays
@@ -17,7 +17,7 @@ pub mod ngp;
 use crate::{
     asset::Asset,
     camera::RayFrame,
-    cubes::{TextureCubes, atlas_bricks_per_axis},
+    cubes::{CubeStorage, TextureCubes, atlas_bricks_per_axis},
     model::RenderSettings,
     render::{Backend, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest, check_request},
 };
@@ -188,7 +188,8 @@ fn upload_atlas(ctx: &GpuContext, cubes: &TextureCubes, label: &str) -> Result<A
         .ok_or_else(|| RenderError::Gpu(format!("{label}: {} bricks do not fit a {max_dim}³ atlas", cubes.brick_count())))?;
     let size = bricks * edge;
     let ch = cubes.channels as usize;
-    let mut texels = vec![half::f16::ZERO; (size.x * size.y * size.z) as usize * ch];
+    let bpv = cubes.storage.bytes_per_value() as usize;
+    let mut texels = vec![0u8; (size.x * size.y * size.z) as usize * ch * bpv];
     let e = edge as usize;
     for b in 0..cubes.brick_count() {
         let bu = b as u32;
@@ -198,13 +199,23 @@ fn upload_atlas(ctx: &GpuContext, cubes: &TextureCubes, label: &str) -> Result<A
             for y in 0..e {
                 let row = (origin.x as usize + size.x as usize * (origin.y as usize + y + size.y as usize * (origin.z as usize + z))) * ch;
                 let from = (e * (y + e * z)) * ch;
-                for (dst, v) in texels[row..row + e * ch].iter_mut().zip(&src[from..from + e * ch]) {
-                    *dst = half::f16::from_f32(*v);
+                for (k, v) in src[from..from + e * ch].iter().enumerate() {
+                    let at = (row + k) * bpv;
+                    match cubes.storage {
+                        CubeStorage::F16 => texels[at..at + 2].copy_from_slice(&half::f16::from_f32(*v).to_le_bytes()),
+                        CubeStorage::Unorm8 => texels[at] = CubeStorage::unorm8(*v),
+                    }
                 }
             }
         }
     }
-    let format = if ch == 1 { wgpu::TextureFormat::R16Float } else { wgpu::TextureFormat::Rgba16Float };
+    use wgpu::TextureFormat as F;
+    let format = match (ch, cubes.storage) {
+        (1, CubeStorage::F16) => F::R16Float,
+        (_, CubeStorage::F16) => F::Rgba16Float,
+        (1, CubeStorage::Unorm8) => F::R8Unorm,
+        (_, CubeStorage::Unorm8) => F::Rgba8Unorm,
+    };
     let extent = wgpu::Extent3d { width: size.x, height: size.y, depth_or_array_layers: size.z };
     let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
         label: Some(label),
@@ -218,8 +229,8 @@ fn upload_atlas(ctx: &GpuContext, cubes: &TextureCubes, label: &str) -> Result<A
     });
     ctx.queue.write_texture(
         wgpu::TexelCopyTextureInfo { texture: &texture, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
-        bytemuck::cast_slice(&texels),
-        wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(size.x * 2 * ch as u32), rows_per_image: Some(size.y) },
+        &texels,
+        wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(size.x * (bpv * ch) as u32), rows_per_image: Some(size.y) },
         extent,
     );
     Ok(Atlas { view: texture.create_view(&Default::default()), bricks, size: size.as_vec3() })

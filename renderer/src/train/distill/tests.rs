@@ -164,6 +164,30 @@ fn distill_marks_cells_and_dilates() {
     assert!(far.iter().all(|v| v.max_element() <= 4));
 }
 
+/// The PSH's dilation is kept only where a density brick could put a hit: with one brick,
+/// every stored vertex is a corner of a PSH cell overlapping it, the hit's own corners are
+/// always kept, and without dilation the set is the hit cells' corners alone.
+#[test]
+fn distill_psh_dilation_stays_where_rays_can_hit() {
+    let bounds = Aabb::cube(1.0);
+    // Density: a 4³ index grid with one brick, cell (2, 2, 2) = [0, 0.5)³.
+    let density = TextureCubes::bake(bounds, 4, 2, 1, |c| c == UVec3::splat(2), |_, out| out[0] = 1.0);
+    let hit = |p: Vec3| HitRay { image: 0, x_px: 0, y_px: 0, p_hit: p, alpha_c: 1.0 };
+    let hits = |points: &[Vec3]| Hits { rays: points.iter().map(|&p| hit(p)).collect(), tile_start: vec![0, points.len()], tiles_x: 1, tiles_y: 1, total_rays: points.len(), missed_opaque: 0 };
+    // PSH 8³ (cells of 0.25): a hit in PSH cell (4, 4, 4), the brick covers PSH cells 4..6.
+    let one = hits(&[Vec3::splat(0.1)]);
+    assert_eq!(psh_vertex_set(&bounds, 8, &density, &one, 0).len(), 8);
+    let dilated = psh_vertex_set(&bounds, 8, &density, &one, 1);
+    let unpruned = marked_cells(&bounds, 8, 1, [Vec3::splat(0.1)].into_iter(), 1);
+    assert_eq!(unpruned.len(), 64);
+    // Vertices 3..=6 per axis, less those below the brick (coordinate 3): 3³.
+    assert_eq!(dilated.len(), 27, "{dilated:?}");
+    assert!(dilated.iter().all(|v| v.min_element() >= 4 && v.max_element() <= 6));
+    assert!(marked_cells(&bounds, 8, 1, [Vec3::splat(0.1)].into_iter(), 0).iter().all(|v| dilated.contains(v)));
+    // A PSH coarser than the index grid: cells overlapping the brick still count.
+    assert_eq!(psh_vertex_set(&bounds, 2, &density, &one, 1).len(), 8);
+}
+
 const STUDENT_STEPS: u64 = 800;
 
 struct Pipeline {
