@@ -52,8 +52,10 @@ struct Counter {
 @group(0) @binding(7) var<storage, read_write> hits: array<Hit>;
 @group(0) @binding(8) var<storage, read_write> counter: Counter;
 @group(0) @binding(9) var<storage, read_write> dispatch_args: array<u32, 3>;
-// Specular MLP as vec4 rows (inputs padded to `mlp_in4` vec4s): uniform loads broadcast to
-// every lane, which is what makes the per-ray network cheap. Layout in `gpu::pack_mlp`.
+// Specular MLP as vec4 rows (inputs padded to `mlp_in4` vec4s) in a uniform buffer: 8× faster
+// than storage on lavapipe. Loads at a loop index are still per-lane gathers there (Mesa 22.3
+// llvmpipe); `ngp.wgsl` avoids them with a weight texture and constant-trip loops. Layout in
+// `gpu::pack_mlp`.
 const MLP_VEC4S: u32 = 2145u;
 struct Mlp {
     w: array<vec4<f32>, MLP_VEC4S>,
