@@ -394,9 +394,6 @@ impl Asset {
         if self.density.values.iter().any(|&v| v < 0.0) {
             return Err(invalid("negative density"));
         }
-        if !self.density.storage.is_f16() {
-            return Err(invalid("density cubes must be stored as f16"));
-        }
         if self.diffuse.storage == CubeStorage::Unorm8 && self.diffuse.values.iter().any(|&v| CubeStorage::Unorm8.round(v) != v) {
             return Err(invalid("diffuse values are not 8-bit unorm values"));
         }

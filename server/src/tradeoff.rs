@@ -127,10 +127,14 @@ fn view_rays(view: &View) -> Vec<(Vec3, Vec3)> {
         .collect()
 }
 
+/// Bytes the CPU adds by keeping cube values (f16 or unorm8 when stored) as f32.
+fn widened(c: &TextureCubes) -> u64 {
+    (4 - c.storage.bytes_per_value()) * c.values.len() as u64
+}
+
 fn asset_memory(asset: &Asset) -> (u64, u64) {
     let stored = asset.memory().stored_bytes();
-    // The CPU keeps f16 and unorm8 values as f32 and a transposed copy of the MLP.
-    let widened = |c: &TextureCubes| (4 - c.storage.bytes_per_value()) * c.values.len() as u64;
+    // Cube and PSH values as f32, and a transposed copy of the MLP.
     let extra = widened(&asset.density) + widened(&asset.diffuse) + 2 * asset.psh.values.len() as u64
         + f32_bytes(asset.mlp.w0.len() + asset.mlp.w1.len() + asset.mlp.w2.len());
     (stored, extra)
@@ -243,7 +247,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     let ngp_model = f32_bytes(teacher.field.parameter_count());
     let ngp_extra = teacher.occupancy.cell_count() as u64 * 4 + teacher.occupancy.cell_count() as u64 / 8 + f32_bytes(teacher.field.density_mlp.params().len() + teacher.field.colour_mlp.params().len());
     let density_stored = geometry.density.stored_bytes();
-    let density_extra = 2 * geometry.density.values.len() as u64;
+    let density_extra = widened(&geometry.density);
     let mut variants = vec![
         Variant { name: "i-NGP".into(), shading: Shading::Ngp, model_bytes: ngp_model, runtime_extra_bytes: ngp_extra },
         Variant {
@@ -268,7 +272,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
             name: "+ diffuse cubes".into(),
             shading: Shading::Cubes(&split.distiller.student, Some(&split_diffuse)),
             model_bytes: density_stored + split_diffuse.stored_bytes() + specular_bytes(&split.distiller.student),
-            runtime_extra_bytes: density_extra + (4 - split_diffuse.storage.bytes_per_value()) * split_diffuse.values.len() as u64,
+            runtime_extra_bytes: density_extra + widened(&split_diffuse),
         },
     ];
     let mut asset_row = |name: String, asset: Arc<Asset>| {

@@ -1,9 +1,9 @@
 //! wgpu compute backend for i-NOLF. Density and diffuse bricks live in 3D texture atlases
-//! (R16Float / Rgba16Float, or Rgba8Unorm for 8-bit diffuse; hardware trilinear filtering); index grids, the perfect hash and
-//! the MLP weights share one storage buffer of words. A batch of views of any sizes is one
-//! list of pixels, rendered in chunks: `march` (one thread per pixel) appends hits, `args`
-//! sizes an indirect dispatch, `shade` (one thread per hit) runs the networks — missed rays
-//! never touch the networks.
+//! (R16Float / Rgba16Float, or Rgba8Unorm for 8-bit diffuse; hardware trilinear filtering);
+//! index grids, the perfect hash and the MLP weights share one storage buffer of words. A
+//! batch of views of any sizes is one list of pixels, rendered in chunks: `march` (one thread
+//! per pixel) appends hits, `args` sizes an indirect dispatch, `shade` (one thread per hit)
+//! runs the networks — missed rays never touch the networks.
 
 use std::{sync::Arc, time::Instant};
 
