@@ -15,10 +15,10 @@
 use glam::{DMat3, DMat4, DQuat, DVec3, Vec3};
 use serde::{Deserialize, Serialize};
 
-/// Largest accepted image edge, in pixels.
-pub const MAX_EDGE_PX: u32 = 8192;
-/// Largest accepted image area, in pixels (8K UHD).
-pub const MAX_PIXELS: u64 = 7680 * 4320;
+/// Largest accepted image edge, in pixels (the shared render limit).
+pub const MAX_EDGE_PX: u32 = nephele_limits::MAX_RENDER_EDGE_PX;
+/// Largest accepted image area, in pixels (8K UHD, the shared render limit).
+pub const MAX_PIXELS: u64 = nephele_limits::MAX_RENDER_PIXELS;
 /// Largest accepted distance of a camera from the scene origin, in scene units.
 pub const MAX_CAMERA_DISTANCE: f64 = 1e9;
 
@@ -75,7 +75,7 @@ impl Intrinsics {
 
     pub fn validate(&self) -> Result<(), PoseError> {
         let Self { fx, fy, cx, cy, width, height } = *self;
-        if width == 0 || height == 0 || width > MAX_EDGE_PX || height > MAX_EDGE_PX || self.pixel_count() > MAX_PIXELS {
+        if !nephele_limits::render_size_ok(width, height) {
             return Err(PoseError::BadSize { width, height });
         }
         let ok = [fx, fy, cx, cy].iter().all(|v| v.is_finite() && v.abs() < 1e12) && fx > 0.0 && fy > 0.0;

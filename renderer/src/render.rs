@@ -150,7 +150,8 @@ impl Frame {
     }
 }
 
-/// The plain CPU reference renderer (rayon over rows).
+/// The plain CPU reference renderer: one parallel pass (rayon) over every ray of every view
+/// of a batch, then one over the hits.
 #[derive(Debug, Default, Clone, Copy)]
 pub struct CpuBackend;
 
@@ -180,49 +181,62 @@ impl PreparedAsset for CpuPrepared {
         let start = Instant::now();
         let frames_setup: Vec<RayFrame> =
             views.iter().map(|v| RayFrame::new(&v.view, &v.instance, asset.bounds.center(), asset.bounds.radius())).collect();
-        // Pass 1: march every ray.
-        let marches: Vec<Vec<model::MarchHit>> = frames_setup
-            .iter()
-            .map(|f| {
-                let (w, h) = (f.intrinsics.width, f.intrinsics.height);
-                (0..w * h)
-                    .into_par_iter()
-                    .map(|i| {
-                        let (o, d) = f.ray(i % w, i / w);
-                        model::march(&asset.density, o, d, step, settings)
-                    })
-                    .collect()
+        // Every ray of every view in one list: (view, pixel) by prefix sums over the views'
+        // pixel counts, so one parallel pass covers the whole batch.
+        let mut starts = Vec::with_capacity(views.len() + 1);
+        starts.push(0u64);
+        for f in &frames_setup {
+            starts.push(starts[starts.len() - 1] + f.intrinsics.pixel_count());
+        }
+        let total = *starts.last().expect("one entry per view plus one");
+        let locate = |i: u64| -> (usize, u32) {
+            let v = starts.partition_point(|&s| s <= i) - 1;
+            (v, (i - starts[v]) as u32)
+        };
+        let ray = |i: u64| {
+            let (v, p) = locate(i);
+            let f = &frames_setup[v];
+            let w = f.intrinsics.width;
+            (v, f.ray(p % w, p / w))
+        };
+        // Pass 1: march every ray of every view.
+        let marched: Vec<model::MarchHit> = (0..total)
+            .into_par_iter()
+            .map(|i| {
+                let (_, (o, d)) = ray(i);
+                model::march(&asset.density, o, d, step, settings)
             })
             .collect();
         let march_done = Instant::now();
         // Pass 2: shade the hits; misses get the background and infinite depth.
-        let mut stats = RenderStats::default();
-        let mut frames = Vec::with_capacity(views.len());
-        for ((req, f), marched) in views.iter().zip(&frames_setup).zip(&marches) {
-            let w = f.intrinsics.width;
-            let shaded: Vec<([u8; 4], f32)> = marched
-                .par_iter()
-                .enumerate()
-                .map(|(i, m)| {
-                    if m.alpha_c < alpha_min {
-                        let bg = req.background;
-                        return ([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY);
-                    }
-                    let (o, d) = f.ray(i as u32 % w, i as u32 / w);
-                    let (rgb, a) = model::shade(asset, &self.1, o + m.t_hit * d, d, m.alpha_c, req.background);
-                    ([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale)
-                })
-                .collect();
-            stats.rays += marched.len() as u64;
-            stats.hits += shaded.iter().filter(|s| s.1.is_finite()).count() as u64;
-            stats.samples += marched.iter().map(|m| m.samples as u64).sum::<u64>();
-            frames.push(Frame {
-                width: w,
-                height: f.intrinsics.height,
-                rgba: shaded.iter().flat_map(|s| s.0).collect(),
-                depth: shaded.iter().map(|s| s.1).collect(),
-            });
-        }
+        let shaded: Vec<([u8; 4], f32)> = marched
+            .par_iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let (v, (o, d)) = ray(i as u64);
+                let (req, f) = (&views[v], &frames_setup[v]);
+                if m.alpha_c < alpha_min {
+                    let bg = req.background;
+                    return ([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY);
+                }
+                let (rgb, a) = model::shade(asset, &self.1, o + m.t_hit * d, d, m.alpha_c, req.background);
+                ([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale)
+            })
+            .collect();
+        let mut stats = RenderStats {
+            rays: total,
+            hits: shaded.iter().filter(|s| s.1.is_finite()).count() as u64,
+            samples: marched.iter().map(|m| m.samples as u64).sum::<u64>(),
+            ..Default::default()
+        };
+        let frames = frames_setup
+            .iter()
+            .zip(starts.windows(2))
+            .map(|(f, range)| {
+                let px = &shaded[range[0] as usize..range[1] as usize];
+                Frame { width: f.intrinsics.width, height: f.intrinsics.height, rgba: px.iter().flat_map(|s| s.0).collect(), depth: px.iter().map(|s| s.1).collect() }
+            })
+            .collect();
         let end = Instant::now();
         stats.march_ms = (march_done - start).as_secs_f64() * 1e3;
         stats.shade_ms = (end - march_done).as_secs_f64() * 1e3;

@@ -1,17 +1,19 @@
-//! Nephele master node: asset loading, render backends, benchmarks, and (as they land)
-//! sessions, scheduler, encoder and WebRTC transport. The `nephele` binary is the CLI.
+//! Nephele's `nephele` binary and its three products, one room each:
+//!
+//! - [`master`]: the master node — a sans-IO core (sessions, admission, scheduler, frame
+//!   rules) with its edge drivers (WebRTC peers, signaling link, encoder threads, render
+//!   workers);
+//! - [`client`]: the headless streaming client and pose replay, which share only the wire
+//!   protocol ([`wire`]) with the master;
+//! - [`cli`]: the subcommands (serve, render, train, eval, bench, …) and their tools.
+//!
+//! Beside them: [`catalog`] (the scenes a process serves), [`assets`] (loading assets and
+//! choosing a backend), [`web`] (the HTTP side of `nephele serve`).
 
 pub mod assets;
-pub mod bench;
+pub mod catalog;
+pub mod cli;
 pub mod client;
-pub mod encode;
-pub mod farm;
 pub mod master;
-pub mod plot;
-pub mod replay;
-pub mod rtc;
-pub mod session;
-pub mod tradeoff;
-pub mod train_cli;
 pub mod web;
 pub mod wire;

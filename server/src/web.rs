@@ -1,5 +1,6 @@
 //! The HTTP side of `nephele serve`: the pages of `web/` (compiled into the binary, so the
-//! server runs from anywhere), `GET /scenes`, and signaling's `/signal` and `/status`.
+//! server runs from anywhere), `GET /scenes`, `GET /metrics` (the master's Prometheus
+//! metrics), and signaling's `/signal` and `/status`.
 
 use std::sync::Arc;
 
@@ -11,36 +12,63 @@ use axum::{
 };
 
 use crate::{
-    farm::Farm,
-    master::{self, MasterConfig},
+    catalog::Catalog,
+    master::{self, MasterConfig, metrics::MasterMetrics},
 };
 
+/// A running in-process server.
+#[derive(Clone)]
+pub struct LocalServer {
+    pub addr: std::net::SocketAddr,
+    pub metrics: Arc<MasterMetrics>,
+    pub signaling: nephele_signaling::SignalState,
+}
+
+impl LocalServer {
+    /// The signaling websocket URL.
+    pub fn signal_url(&self) -> String {
+        format!("ws://{}/signal", self.addr)
+    }
+}
+
 /// Runs signaling, the pages and one master on `listener` in this process (the embedded
-/// default). Returns the bound address; everything runs on spawned tasks.
-pub async fn spawn_local(listener: tokio::net::TcpListener, farm: Arc<Farm>, cfg: MasterConfig) -> std::io::Result<std::net::SocketAddr> {
+/// default). Returns once the master is registered and its render workers have measured
+/// their throughput; everything runs on spawned tasks.
+pub async fn spawn_local(listener: tokio::net::TcpListener, catalog: Arc<Catalog>, cfg: MasterConfig) -> std::io::Result<LocalServer> {
     let addr = listener.local_addr()?;
     let hub = nephele_signaling::HubConfig { token: cfg.token.clone(), ..Default::default() };
     let signaling = nephele_signaling::SignalState::new(hub);
     signaling.spawn_tick_task();
-    let app = router(signaling.clone(), Arc::clone(&farm));
+    let metrics = Arc::new(MasterMetrics::new());
+    let app = router(signaling.clone(), Arc::clone(&catalog), Arc::clone(&metrics));
     tokio::spawn(async move {
         if let Err(e) = axum::serve(listener, app).await {
             tracing::error!("HTTP server failed: {e}");
         }
     });
+    let m = Arc::clone(&metrics);
     tokio::spawn(async move {
-        if let Err(e) = master::run(format!("ws://{addr}/signal"), cfg, farm).await {
+        if let Err(e) = master::run(format!("ws://{addr}/signal"), cfg, catalog, m).await {
             tracing::error!("master stopped: {e:#}");
         }
     });
-    // Ready when the master has registered (a join before that would find no capacity).
-    for _ in 0..200 {
-        if !signaling.stats().masters.is_empty() {
-            return Ok(addr);
+    // Ready when the master has registered (a join before that would find no master) and a
+    // worker has calibrated (before that nothing renders).
+    let ready = |what: &str, secs: u64| std::io::Error::other(format!("the local master {what} within {secs} s"));
+    wait_for(5, || !signaling.stats().masters.is_empty()).await.ok_or_else(|| ready("did not register with signaling", 5))?;
+    wait_for(120, || metrics.farm_rays_per_s.get() > 0.0).await.ok_or_else(|| ready("had no render worker up", 120))?;
+    Ok(LocalServer { addr, metrics, signaling })
+}
+
+async fn wait_for(secs: u64, done: impl Fn() -> bool) -> Option<()> {
+    let until = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+    while std::time::Instant::now() < until {
+        if done() {
+            return Some(());
         }
-        tokio::time::sleep(std::time::Duration::from_millis(25)).await;
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
-    Err(std::io::Error::other("the local master did not register with signaling within 5 s"))
+    None
 }
 
 /// (URL path, content type, body) of every page file.
@@ -53,16 +81,26 @@ const PAGES: &[(&str, &str, &str)] = &[
     ("/style.css", "text/css; charset=utf-8", include_str!("../../web/style.css")),
 ];
 
-/// Pages plus `/scenes`, merged with signaling's routes.
-pub fn router(signaling: nephele_signaling::SignalState, farm: Arc<Farm>) -> Router {
+/// Pages plus `/scenes` and `/metrics`, merged with signaling's routes.
+pub fn router(signaling: nephele_signaling::SignalState, catalog: Arc<Catalog>, metrics: Arc<MasterMetrics>) -> Router {
     let mut router = nephele_signaling::app(signaling);
     for &(path, mime, body) in PAGES {
         router = router.route(path, get(move || async move { page(mime, body) }));
     }
     let (_, mime, index) = PAGES[0];
     router = router.route("/", get(move || async move { page(mime, index) }));
-    let scenes = serde_json::json!({ "scenes": farm.names(), "default": farm.default_scene });
-    router.route("/scenes", get(move || async move { Json(scenes.clone()) })).fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
+    let scenes = serde_json::json!({ "scenes": catalog.names(), "default": catalog.default_scene });
+    router
+        .route("/scenes", get(move || async move { Json(scenes.clone()) }))
+        .route("/metrics", get(move || async move { metrics_page(&metrics) }))
+        .fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
+}
+
+fn metrics_page(metrics: &MasterMetrics) -> Response {
+    let mut r = metrics.encode().into_response();
+    let mime = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(mime));
+    r
 }
 
 fn page(mime: &'static str, body: &'static str) -> Response {

@@ -1,9 +1,7 @@
 //! Encoder stage: RGBA → I420 → OpenH264, decoded back with OpenH264's decoder.
 
-use nephele::encode::{
-    EncodeError, EncodedFrame, EncoderConfig, FrameEncoder, bench_encode, parse_pose_seq,
-    split_nals, test_pattern,
-};
+use nephele::master::encoder::{EncodeError, EncodedFrame, EncoderConfig, FrameEncoder, bench_encode, test_pattern};
+use nephele::wire::sei::{parse_pose_seq, split_nals};
 use openh264::decoder::Decoder;
 use openh264::formats::YUVSource;
 use yuv::{YuvPlanarImage, YuvRange, YuvStandardMatrix, yuv420_to_rgba};
@@ -24,7 +22,7 @@ fn assert_layout(frame: &EncodedFrame, head: &[u8], slice: u8, what: &str) {
     assert!(types.len() > head.len() && types.starts_with(head), "{what} access unit layout: {types:?}");
     assert!(types[head.len()..].iter().all(|&t| t == slice), "{what} access unit layout: {types:?}");
     let largest = split_nals(&frame.annex_b).map(<[u8]>::len).max().unwrap();
-    assert!(largest <= nephele::encode::MAX_SLICE_BYTES as usize, "a {largest}-byte NAL exceeds the slice limit");
+    assert!(largest <= nephele::master::encoder::MAX_SLICE_BYTES as usize, "a {largest}-byte NAL exceeds the slice limit");
 }
 
 fn assert_idr(frame: &EncodedFrame) {

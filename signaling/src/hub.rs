@@ -6,11 +6,15 @@
 //! sockets, clocks or tasks (see `server.rs` for the IO edge), so tests drive it on
 //! simulated time.
 //!
-//! Pairing: a join goes to the master with room (`sessions < capacity`) and the least
-//! load (`sessions / capacity`, ties broken by id). Each master's session count is
-//! kept by the hub (join +1; leave, end, reject, disconnect -1) and raised to the
-//! master's own count whenever a heartbeat arrives (never below the sessions the hub has
-//! paired there: a heartbeat can be older than the latest join).
+//! Pairing: a join goes only to masters that serve its scene (a scene nobody serves is
+//! refused at once, naming the scenes on offer); among those with a free session slot
+//! (`sessions < capacity`) that do not report themselves saturated, to the one with the
+//! most free rays per second, as its last heartbeat said, less the pixel rate
+//! (`width × height × fps`) of every join paired there since (ties: fewer sessions, then
+//! the smaller id). Each master's session count is kept by the hub (join +1; leave, end,
+//! reject, disconnect -1) and raised to the master's own count whenever a heartbeat arrives
+//! (never below the sessions the hub has paired there: a heartbeat can be older than the
+//! latest join).
 
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -45,7 +49,7 @@ impl Default for HubConfig {
         Self {
             token: None,
             heartbeat_timeout: Duration::from_secs(15),
-            max_message_bytes: 64 * 1024,
+            max_message_bytes: nephele_limits::MAX_SIGNAL_MESSAGE_BYTES,
         }
     }
 }
@@ -93,9 +97,12 @@ pub enum SignalError {
     /// No master registered at all.
     #[error("no master is registered; try again later")]
     NoMaster,
-    /// All registered masters are at capacity.
-    #[error("all {0} masters are full; try again later")]
-    AllFull(usize),
+    /// All registered masters serving the scene are at capacity or saturated.
+    #[error("all {masters} masters serving scene {scene:?} are full or saturated (their users are behind their frame rates); try again later")]
+    AllFull { masters: usize, scene: String },
+    /// No registered master serves the scene.
+    #[error("no master serves scene {scene:?}; scenes on offer: {offered}")]
+    UnknownScene { scene: String, offered: String },
     /// Acceptable syntax, unacceptable content.
     #[error("{0}")]
     BadRequest(String),
@@ -117,7 +124,8 @@ impl SignalError {
             Self::BadMessage(_) => ErrorCode::BadMessage,
             Self::TooLarge { .. } => ErrorCode::TooLarge,
             Self::Unauthorized => ErrorCode::Unauthorized,
-            Self::NoMaster | Self::AllFull(_) => ErrorCode::NoCapacity,
+            Self::NoMaster | Self::AllFull { .. } => ErrorCode::NoCapacity,
+            Self::UnknownScene { .. } => ErrorCode::UnknownScene,
             Self::BadRequest(_) => ErrorCode::BadRequest,
             Self::WrongRole { .. } => ErrorCode::WrongRole,
             Self::NotJoined(_) => ErrorCode::NotJoined,
@@ -126,7 +134,7 @@ impl SignalError {
 }
 
 /// One master's load, for `/status`.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct MasterStats {
     /// Master id.
     pub master: String,
@@ -134,10 +142,17 @@ pub struct MasterStats {
     pub capacity: u32,
     /// Current sessions.
     pub sessions: u32,
+    /// Scenes it serves.
+    pub scenes: Vec<String>,
+    /// Free rays per second, as last reported less the joins paired since (null before the
+    /// first heartbeat).
+    pub free_rays_per_s: Option<f64>,
+    /// It reported users behind their frame rates.
+    pub saturated: bool,
 }
 
 /// Snapshot of the hub, for `/status`.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct HubStats {
     /// Registered masters, ordered by id.
     pub masters: Vec<MasterStats>,
@@ -152,6 +167,11 @@ struct Master {
     id: String,
     capacity: u32,
     sessions: u32,
+    scenes: Vec<String>,
+    /// Last reported free rays/s, less the pixel rate of joins paired since (unknown, i.e.
+    /// unbounded, before the first heartbeat).
+    free_rays_per_s: Option<f64>,
+    saturated: bool,
     last_seen: Instant,
 }
 
@@ -287,6 +307,9 @@ impl Hub {
                     master: m.id.clone(),
                     capacity: m.capacity,
                     sessions: m.sessions,
+                    scenes: m.scenes.clone(),
+                    free_rays_per_s: m.free_rays_per_s,
+                    saturated: m.saturated,
                 }),
                 Peer::Fresh => {}
             }
@@ -328,9 +351,10 @@ impl Hub {
                 ToSignal::Register {
                     name,
                     capacity,
+                    scenes,
                     token,
                 },
-            ) => self.register(conn, &name, capacity, token.as_deref(), now),
+            ) => self.register(conn, &name, capacity, scenes, token.as_deref(), now),
             (Peer::Fresh, msg) => Err(SignalError::NotJoined(kind(&msg))),
             (Peer::Client { session }, ToSignal::Offer { sdp }) => {
                 let session = session.clone().ok_or(SignalError::NotJoined("offer"))?;
@@ -356,12 +380,21 @@ impl Hub {
                 kind: kind(&msg),
                 role: "client",
             }),
-            (Peer::Master(m), ToSignal::Heartbeat { sessions }) => {
+            (
+                Peer::Master(m),
+                ToSignal::Heartbeat {
+                    sessions,
+                    free_rays_per_s,
+                    saturated,
+                },
+            ) => {
                 m.last_seen = now;
                 // A heartbeat may have left the master before a join we paired reached it:
                 // never count fewer sessions than this hub has paired there and not ended.
                 let paired = self.sessions.values().filter(|s| s.master == conn).count() as u32;
                 m.sessions = sessions.max(paired);
+                m.free_rays_per_s = Some(if free_rays_per_s.is_finite() { free_rays_per_s.max(0.0) } else { 0.0 });
+                m.saturated = saturated;
                 Ok(Vec::new())
             }
             (Peer::Master(m), ToSignal::Answer { session, sdp }) => {
@@ -419,13 +452,14 @@ impl Hub {
             )));
         }
         req.validate()?;
-        let master_conn = self.pick_master()?;
+        let master_conn = self.pick_master(&req.scene)?;
         let session = format!("s{}", self.next_session);
         self.next_session += 1;
         let Some(Peer::Master(master)) = self.peers.get_mut(&master_conn) else {
             unreachable!("picked a master")
         };
         master.sessions += 1;
+        master.free_rays_per_s = master.free_rays_per_s.map(|f| (f - req.pixel_rate()).max(0.0));
         let master_id = master.id.clone();
         tracing::info!(%session, master = %master_id, scene = %req.scene, mode = ?req.mode, width = req.width, height = req.height, fps = req.fps, "session paired");
         self.sessions.insert(
@@ -470,8 +504,9 @@ impl Hub {
         ])
     }
 
-    /// The master with room and the least load; ties go to the smaller id.
-    fn pick_master(&self) -> Result<ConnId, SignalError> {
+    /// Among the masters serving `scene`, the one with a free slot, not saturated, and the
+    /// most free rays per second; ties go to fewer sessions, then the smaller id.
+    fn pick_master(&self, scene: &str) -> Result<ConnId, SignalError> {
         let masters: Vec<(ConnId, &Master)> = self
             .peers
             .iter()
@@ -483,17 +518,37 @@ impl Hub {
         if masters.is_empty() {
             return Err(SignalError::NoMaster);
         }
-        masters
+        let serving: Vec<&(ConnId, &Master)> = masters
             .iter()
-            .filter(|(_, m)| m.sessions < m.capacity)
-            .min_by(|(_, a), (_, b)| {
-                // Compare sessions/capacity exactly: a.s/a.c < b.s/b.c  <=>  a.s*b.c < b.s*a.c.
-                let load_a = u64::from(a.sessions) * u64::from(b.capacity);
-                let load_b = u64::from(b.sessions) * u64::from(a.capacity);
-                load_a.cmp(&load_b).then_with(|| a.id.cmp(&b.id))
+            .filter(|(_, m)| m.scenes.iter().any(|s| s == scene))
+            .collect();
+        if serving.is_empty() {
+            let mut offered: Vec<&str> = masters
+                .iter()
+                .flat_map(|(_, m)| m.scenes.iter().map(String::as_str))
+                .collect();
+            offered.sort_unstable();
+            offered.dedup();
+            return Err(SignalError::UnknownScene {
+                scene: scene.to_owned(),
+                offered: offered.join(", "),
+            });
+        }
+        serving
+            .iter()
+            .filter(|(_, m)| m.sessions < m.capacity && !m.saturated)
+            .max_by(|(_, a), (_, b)| {
+                let free = |m: &Master| m.free_rays_per_s.unwrap_or(f64::INFINITY);
+                free(a)
+                    .total_cmp(&free(b))
+                    .then_with(|| b.sessions.cmp(&a.sessions))
+                    .then_with(|| b.id.cmp(&a.id))
             })
             .map(|(c, _)| *c)
-            .ok_or(SignalError::AllFull(masters.len()))
+            .ok_or_else(|| SignalError::AllFull {
+                masters: serving.len(),
+                scene: scene.to_owned(),
+            })
     }
 
     fn register(
@@ -501,11 +556,21 @@ impl Hub {
         conn: ConnId,
         name: &str,
         capacity: u32,
+        scenes: Vec<String>,
         token: Option<&str>,
         now: Instant,
     ) -> Res {
         self.check_token(token)?;
         validate_name("master name", name)?;
+        if scenes.len() > MAX_SCENES_PER_MASTER {
+            return Err(SignalError::BadRequest(format!(
+                "a master may list at most {MAX_SCENES_PER_MASTER} scenes (got {})",
+                scenes.len()
+            )));
+        }
+        for scene in &scenes {
+            validate_name("scene", scene)?;
+        }
         let taken = |id: &str| {
             self.peers
                 .values()
@@ -523,6 +588,9 @@ impl Hub {
                 id: id.clone(),
                 capacity,
                 sessions: 0,
+                scenes,
+                free_rays_per_s: None,
+                saturated: false,
                 last_seen: now,
             }),
         );
@@ -621,20 +689,19 @@ struct JoinRequest {
 impl JoinRequest {
     fn validate(&self) -> Result<(), SignalError> {
         validate_name("scene", &self.scene)?;
-        let (w, h, fps) = (self.width, self.height, self.fps);
-        if !(1..=7680).contains(&w) || !(1..=4320).contains(&h) {
-            return Err(SignalError::BadRequest(format!(
-                "size {w}x{h} is outside 1x1..=7680x4320"
-            )));
-        }
-        if !(1..=120).contains(&fps) {
-            return Err(SignalError::BadRequest(format!(
-                "fps {fps} is outside 1..=120"
-            )));
-        }
-        Ok(())
+        nephele_limits::check_stream_size(self.width, self.height)
+            .and_then(|()| nephele_limits::check_fps(self.fps))
+            .map_err(|e| SignalError::BadRequest(e.to_string()))
+    }
+
+    /// Rays per second this session asks for at full resolution.
+    fn pixel_rate(&self) -> f64 {
+        f64::from(self.width) * f64::from(self.height) * f64::from(self.fps)
     }
 }
+
+/// Most scenes one master may list at registration.
+const MAX_SCENES_PER_MASTER: usize = 256;
 
 fn validate_name(what: &str, name: &str) -> Result<(), SignalError> {
     if !crate::protocol::is_valid_name(name) {
@@ -707,7 +774,7 @@ mod tests {
         let out = send(
             hub,
             conn,
-            json!({"type":"register","name":name,"capacity":capacity}),
+            json!({"type":"register","name":name,"capacity":capacity,"scenes":["cubes","A-z_9"]}),
             now,
         );
         assert_eq!(
@@ -744,23 +811,52 @@ mod tests {
     }
 
     #[test]
-    fn pairs_least_loaded_then_reports_full() {
+    fn pairs_by_free_rays_then_reports_full() {
         let (mut hub, t0) = hub_with(None);
         add_master(&mut hub, 1, "b", 2, t0);
         add_master(&mut hub, 2, "a", 4, t0);
-        // Loads before each join (a/4, b/2): tie→a, 1/4<0/2? no: b, 1/4<1/2: a,
-        // 2/4=1/2 tie→a, 3/4>1/2: b, b full: a.
-        let picked: Vec<u64> = (10..16).map(|c| add_client(&mut hub, c, t0).1).collect();
-        assert_eq!(picked, vec![2, 1, 2, 2, 1, 2]);
+        // Before any heartbeat both have unbounded room: fewer sessions, then the smaller id.
+        let picked: Vec<u64> = (10..12).map(|c| add_client(&mut hub, c, t0).1).collect();
+        assert_eq!(picked, vec![2, 1]);
+        // Heartbeats give the room; each join takes its pixel rate (1280×720×60 = 55.3 M/s).
+        send(&mut hub, 1, json!({"type":"heartbeat","sessions":1,"free_rays_per_s":200e6}), t0);
+        send(&mut hub, 2, json!({"type":"heartbeat","sessions":1,"free_rays_per_s":120e6}), t0);
+        // b 200 → 144.7 → 89.4 (b full at 2 sessions: only a is left, 120 → 64.7 → 9.4).
+        let picked: Vec<u64> = (12..15).map(|c| add_client(&mut hub, c, t0).1).collect();
+        assert_eq!(picked, vec![1, 2, 2]);
+        let stats = hub.stats();
+        assert!((stats.masters[0].free_rays_per_s.unwrap() - (120e6 - 2.0 * 1280.0 * 720.0 * 60.0)).abs() < 1.0);
         assert_eq!(
             master_sessions(&hub),
-            vec![("a".into(), 4), ("b".into(), 2)]
+            vec![("a".into(), 3), ("b".into(), 2)]
         );
-
+        // A saturated master gets no joins even with a free slot.
+        send(&mut hub, 2, json!({"type":"heartbeat","sessions":3,"free_rays_per_s":1e9,"saturated":true}), t0);
         hub.connect(ConnId(20), t0);
         let (to, code, message) = error_code(&send(&mut hub, 20, join_json(), t0));
         assert_eq!((to, code.as_str()), (20, "no_capacity"));
-        assert!(message.contains("all 2 masters are full"), "{message}");
+        assert!(message.contains("all 2 masters serving scene \"cubes\" are full or saturated"), "{message}");
+        send(&mut hub, 2, json!({"type":"heartbeat","sessions":3,"free_rays_per_s":1e9,"saturated":false}), t0);
+        assert_eq!(add_client(&mut hub, 21, t0).1, 2);
+    }
+
+    #[test]
+    fn a_scene_nobody_serves_is_refused_at_once_in_words() {
+        let (mut hub, t0) = hub_with(None);
+        add_master(&mut hub, 1, "m", 4, t0);
+        hub.connect(ConnId(2), t0);
+        let mut join = join_json();
+        join["scene"] = json!("lego");
+        let (to, code, message) = error_code(&send(&mut hub, 2, join, t0));
+        assert_eq!((to, code.as_str()), (2, "unknown_scene"));
+        assert_eq!(message, "no master serves scene \"lego\"; scenes on offer: A-z_9, cubes");
+        assert_eq!(master_sessions(&hub), vec![("m".into(), 0)]);
+        // The master heard nothing; the client may join a served scene.
+        assert_eq!(add_client(&mut hub, 2, t0).1, 1);
+        // A master listing a bad scene name is refused.
+        hub.connect(ConnId(3), t0);
+        let bad = json!({"type":"register","name":"x","capacity":1,"scenes":["../x"]});
+        assert_eq!(error_code(&send(&mut hub, 3, bad, t0)).1, "bad_request");
     }
 
     #[test]
@@ -779,7 +875,7 @@ mod tests {
         let out = send(
             &mut hub,
             1,
-            json!({"type":"register","name":"m","capacity":1}),
+            json!({"type":"register","name":"m","capacity":1,"scenes":["cubes"]}),
             t0,
         );
         assert_eq!(error_code(&out).1, "unauthorized");
@@ -787,14 +883,14 @@ mod tests {
         let out = send(
             &mut hub,
             1,
-            json!({"type":"register","name":"m","capacity":1,"token":"s3cre"}),
+            json!({"type":"register","name":"m","capacity":1,"scenes":["cubes"],"token":"s3cre"}),
             t0,
         );
         assert_eq!(error_code(&out).1, "unauthorized");
         let out = send(
             &mut hub,
             1,
-            json!({"type":"register","name":"m","capacity":1,"token":"s3cret"}),
+            json!({"type":"register","name":"m","capacity":1,"scenes":["cubes"],"token":"s3cret"}),
             t0,
         );
         assert_eq!(
@@ -854,7 +950,8 @@ mod tests {
         hub.connect(ConnId(2), t0);
         let cases = [
             ("width", json!(0)),
-            ("width", json!(7682)),
+            ("width", json!(4097)),
+            ("width", json!(7680)),
             ("height", json!(4321)),
             ("fps", json!(0)),
             ("fps", json!(240)),
@@ -872,7 +969,7 @@ mod tests {
             );
         }
         let mut odd = join_json();
-        odd["width"] = json!(7679);
+        odd["width"] = json!(4096);
         odd["height"] = json!(1);
         odd["fps"] = json!(120);
         odd["scene"] = json!("A-z_9");
@@ -899,7 +996,7 @@ mod tests {
             error_code(&send(
                 &mut hub,
                 2,
-                json!({"type":"register","name":"x","capacity":1}),
+                json!({"type":"register","name":"x","capacity":1,"scenes":["cubes"]}),
                 t0
             ))
             .1,
@@ -1103,7 +1200,7 @@ mod tests {
         let out = send(
             &mut hub,
             2,
-            json!({"type":"register","name":"m","capacity":4}),
+            json!({"type":"register","name":"m","capacity":4,"scenes":["cubes"]}),
             t0,
         );
         assert_eq!(

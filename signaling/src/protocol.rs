@@ -47,11 +47,11 @@ pub enum ToSignal {
         scene: String,
         /// Display mode.
         mode: Mode,
-        /// Requested frame width in pixels, 1..=7680.
+        /// Requested frame width in pixels (limits: `nephele_limits::check_stream_size`).
         width: u32,
-        /// Requested frame height in pixels, 1..=4320.
+        /// Requested frame height in pixels.
         height: u32,
-        /// Requested frame rate in frames per second, 1..=120.
+        /// Requested frame rate in frames per second, `MIN_FPS..=MAX_FPS` (1..=120).
         fps: u32,
         /// Shared secret; required when signaling is configured with a token.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -79,14 +79,23 @@ pub enum ToSignal {
         name: String,
         /// Maximum number of concurrent sessions this master accepts.
         capacity: u32,
+        /// The scenes this master renders; joins for other scenes never reach it.
+        scenes: Vec<String>,
         /// Shared secret; required when signaling is configured with a token.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         token: Option<String>,
     },
-    /// Master: liveness plus its authoritative count of live sessions.
+    /// Master: liveness, its authoritative count of live sessions and the room it has left.
     Heartbeat {
         /// Sessions the master is currently serving.
         sessions: u32,
+        /// Predicted rays per second the farm can still render after serving every admitted
+        /// user at its lowest render scale (NEPHELE Algorithm 1's capacity, measured online).
+        #[serde(default)]
+        free_rays_per_s: f64,
+        /// Some admitted user is behind its frame rate: the master refuses new joins.
+        #[serde(default)]
+        saturated: bool,
     },
     /// Master: the WebRTC answer to a client's offer.
     Answer {
@@ -214,6 +223,8 @@ pub enum ErrorCode {
     BadRequest,
     /// The session's master disconnected or stopped sending heartbeats.
     MasterLost,
+    /// No registered master serves the requested scene.
+    UnknownScene,
     /// The master refused the session.
     Rejected,
     /// A message that the sender's role may not send.

@@ -121,7 +121,7 @@ async fn signaling_over_real_websockets() {
     let mut master = connect(addr).await;
     send(
         &mut master,
-        json!({"type":"register","name":"farm-1","capacity":4}),
+        json!({"type":"register","name":"farm-1","capacity":4,"scenes":["cubes"]}),
     )
     .await;
     assert_eq!(
@@ -152,7 +152,7 @@ async fn signaling_over_real_websockets() {
     let status = http_get(addr, "/status").await;
     assert_eq!(
         status,
-        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2}],"clients":2,"sessions":2})
+        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2})
     );
 
     // A client that goes away frees its slot and the master hears `leave`.
@@ -199,7 +199,7 @@ async fn silent_master_times_out() {
     let mut master = connect(addr).await;
     send(
         &mut master,
-        json!({"type":"register","name":"farm-1","capacity":1}),
+        json!({"type":"register","name":"farm-1","capacity":1,"scenes":["cubes"]}),
     )
     .await;
     assert_eq!(recv(&mut master).await["type"], "registered");

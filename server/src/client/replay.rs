@@ -19,11 +19,8 @@ use nephele_renderer::{Intrinsics, PreparedAsset, RenderSettings, View, ViewRequ
 use nephele_signaling::Mode;
 use serde::{Deserialize, Serialize};
 
-use crate::{
-    client::{ClientOptions, ReceivedFrame, StreamClient},
-    master::{AR_BACKGROUND, VIEWER_BACKGROUND},
-    wire::{FrameInfo, PoseMessage, ToViewer},
-};
+use super::{ClientOptions, ReceivedFrame, StreamClient};
+use crate::wire::{FrameInfo, PoseMessage, ToViewer, media::background_of};
 
 /// A recorded camera path.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -165,6 +162,15 @@ pub struct ReplayReport {
     pub encode_ms: Percentiles,
     pub send_ms: Percentiles,
     pub idr_frames: usize,
+    /// Time between consecutive decoded frames, ms.
+    pub frame_gap_ms: Percentiles,
+    /// The master's render time divided among the views of each rendered frame's task, ms
+    /// (mean over frames that were rendered, not reused).
+    pub render_ms_per_view: f64,
+    /// Mean views per render task of this client's rendered frames.
+    pub mean_batch_views: f64,
+    /// Frames the master reused instead of rendering (a still camera, the history table).
+    pub reused_frames: usize,
     pub quality: Vec<QualitySample>,
     /// Errors the master sent on the pose channel.
     pub errors: Vec<String>,
@@ -297,9 +303,10 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
         }
     }
 
+    let rendered: Vec<&FrameInfo> = infos.iter().map(|(i, _)| i).filter(|i| !i.reused).collect();
     let mut quality = Vec::new();
     if let (Some((prepared, settings)), true) = (reference, opts.quality_every > 0) {
-        let background = if opts.client.mode == Mode::Ar { AR_BACKGROUND } else { VIEWER_BACKGROUND };
+        let background = background_of(opts.client.mode);
         for f in frames.iter().step_by(opts.quality_every) {
             let Some((_, sent)) = f.pose_seq.and_then(|s| sent_at.get(&s)) else { continue };
             if f.rgba.is_empty() || (f.width, f.height) != (w, h) {
@@ -333,9 +340,18 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
         encode_ms: stat(|i| i.times.encode_ms),
         send_ms: stat(|i| i.times.send_ms),
         idr_frames: infos.iter().filter(|(i, _)| i.times.idr).count(),
+        frame_gap_ms: Percentiles::of(&frames.windows(2).map(|w| w[1].decoded_at.duration_since(w[0].decoded_at).as_secs_f64() * 1e3).collect::<Vec<_>>()),
+        render_ms_per_view: mean(rendered.iter().map(|i| i.times.render_ms / f64::from(i.batch_views.max(1)))),
+        mean_batch_views: mean(rendered.iter().map(|i| f64::from(i.batch_views))),
+        reused_frames: infos.iter().filter(|(i, _)| i.reused).count(),
         quality,
         errors,
     })
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    if n == 0 { 0.0 } else { sum / n as f64 }
 }
 
 /// PSNR over the RGB channels of two RGBA8 images of the same size, dB (∞ if identical).

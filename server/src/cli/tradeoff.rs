@@ -49,7 +49,7 @@ use nephele_renderer::{
     },
 };
 
-use crate::plot::{Labels, Series, line_chart};
+use super::plot::{Labels, Series, line_chart};
 
 #[derive(Debug, Clone)]
 pub struct TradeoffOptions {
@@ -146,7 +146,7 @@ fn specular_bytes(s: &Student) -> u64 {
 }
 
 fn bar(prefix: &'static str, len: u64) -> ProgressBar {
-    crate::train_cli::progress_bar(prefix, len, 0)
+    super::train::progress_bar(prefix, len, 0)
 }
 
 /// Median wall time of `runs` calls (one if a call takes over 2 s).

@@ -1,4 +1,7 @@
-//! The `pose` data channel's wire format (DESIGN.md §5 "Pose channel").
+//! The protocol a streaming client and a master share, and nothing of either side's
+//! internals: the `pose` data channel's format (DESIGN.md §5 "Pose channel") here, the
+//! pose-sequence SEI in [`sei`], the WebRTC media conventions in [`media`]. The master
+//! (`crate::master`) and the headless client (`crate::client`) both build on this module.
 //!
 //! Client → master: one binary pose message every 20 ms, little-endian, 104 bytes, or 168
 //! with an AR plane anchor:
@@ -16,6 +19,9 @@
 //! Master → client: JSON text messages ([`ToViewer`]): the session description once, frame
 //! info for every encoded frame (so latency is measured on the client's clock by echoing
 //! `t_client_ms`), and refusals with a reason.
+
+pub mod media;
+pub mod sei;
 
 use glam::{DMat3, DMat4, DQuat, DVec3, Mat4};
 use nephele_renderer::{Instance, Intrinsics, View, camera::rotation_deviation};
@@ -213,6 +219,14 @@ pub struct FrameInfo {
     pub times: FrameTimes,
     /// Fraction of the stream size that was rendered before upscaling (1 = exact).
     pub render_scale: f32,
+    /// Views in the render task that made this frame (several users batched in one pass),
+    /// 0 when the frame was not rendered but reused.
+    #[serde(default)]
+    pub batch_views: u32,
+    /// Reused: the user's own last frame (camera at rest) or an identical request of
+    /// another user from the history table.
+    #[serde(default)]
+    pub reused: bool,
 }
 
 /// Where one frame's time went after it left the queue, and what it weighed.

@@ -19,7 +19,7 @@
 //!    NAL (type 6, payload type 5: our 16-byte UUID, then the sequence as big-endian u64),
 //!    placed after SPS/PPS and before the first slice, with emulation prevention bytes.
 //!    RTP payloaders pass SEI through, so the client can compute pose-to-photon latency on
-//!    its own clock ([`parse_pose_seq`]).
+//!    its own clock ([`crate::wire::sei`]).
 
 use std::time::Instant;
 
@@ -34,11 +34,7 @@ use yuv::{
     rgba_to_yuv420,
 };
 
-/// UUID of our SEI `user_data_unregistered` message ("NEPHELE:POSE-SEQ" in ASCII).
-pub const POSE_SEI_UUID: [u8; 16] = *b"NEPHELE:POSE-SEQ";
-
-const NAL_SEI: u8 = 6;
-const SEI_USER_DATA_UNREGISTERED: u8 = 5;
+use crate::wire::sei::write_pose_sei;
 
 #[derive(Debug, thiserror::Error)]
 pub enum EncodeError {
@@ -144,13 +140,11 @@ pub struct FrameEncoder {
 impl FrameEncoder {
     pub fn new(cfg: EncoderConfig) -> Result<Self, EncodeError> {
         let (padded_w, padded_h) = cfg.padded_size();
-        let size_ok = cfg.width.min(cfg.height) > 0
-            && padded_w.max(padded_h) <= 3840
-            && padded_w.min(padded_h) <= 2160;
-        if !size_ok || cfg.fps == 0 || cfg.bitrate_bps == 0 {
-            return Err(EncodeError::InvalidConfig(format!(
-                "{cfg:?} (size ≤ 3840x2160, fps and bitrate > 0)"
-            )));
+        nephele_limits::check_stream_size(cfg.width, cfg.height)
+            .and_then(|()| nephele_limits::check_fps(cfg.fps))
+            .map_err(|e| EncodeError::InvalidConfig(e.to_string()))?;
+        if cfg.bitrate_bps == 0 {
+            return Err(EncodeError::InvalidConfig("bitrate must be positive".into()));
         }
         let h264 = H264Config::new()
             .usage_type(UsageType::CameraVideoRealTime)
@@ -311,74 +305,33 @@ impl FrameEncoder {
     }
 }
 
-fn nal_type(nal: &[u8]) -> u8 {
-    nal.first().map_or(0, |b| b & 0x1f)
-}
-
-/// Append the pose SEI NAL (start code, header, escaped RBSP) to `out`.
-fn write_pose_sei(out: &mut Vec<u8>, pose_seq: u64) {
-    let mut rbsp = Vec::with_capacity(27);
-    rbsp.push(SEI_USER_DATA_UNREGISTERED); // payload type
-    rbsp.push(24); // payload size: UUID + u64
-    rbsp.extend_from_slice(&POSE_SEI_UUID);
-    rbsp.extend_from_slice(&pose_seq.to_be_bytes());
-    rbsp.push(0x80); // rbsp_trailing_bits
-    out.extend_from_slice(&[0, 0, 0, 1, NAL_SEI]);
-    let mut zeros = 0;
-    for &b in &rbsp {
-        if zeros >= 2 && b <= 3 {
-            out.push(3); // emulation_prevention_three_byte
-            zeros = 0;
+/// Bilinear resize of RGBA8 from `sw`×`sh` to `dw`×`dh`, pixel centres aligned.
+pub fn upscale_bilinear(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
+    let (sw, sh, dw, dh) = (sw as usize, sh as usize, dw as usize, dh as usize);
+    // Source coordinate and weight of each destination column/row.
+    let taps = |d: usize, s: usize| -> Vec<(usize, usize, f32)> {
+        (0..d)
+            .map(|i| {
+                let x = ((i as f32 + 0.5) * s as f32 / d as f32 - 0.5).clamp(0.0, (s - 1) as f32);
+                let x0 = x as usize;
+                (x0, (x0 + 1).min(s - 1), x - x0 as f32)
+            })
+            .collect()
+    };
+    let (cols, rows) = (taps(dw, sw), taps(dh, sh));
+    let mut out = vec![0u8; dw * dh * 4];
+    for (y, &(y0, y1, fy)) in rows.iter().enumerate() {
+        let (r0, r1) = (&src[y0 * sw * 4..(y0 + 1) * sw * 4], &src[y1 * sw * 4..(y1 + 1) * sw * 4]);
+        let row = &mut out[y * dw * 4..(y + 1) * dw * 4];
+        for (px, &(x0, x1, fx)) in row.chunks_exact_mut(4).zip(&cols) {
+            for c in 0..4 {
+                let top = f32::from(r0[x0 * 4 + c]) * (1.0 - fx) + f32::from(r0[x1 * 4 + c]) * fx;
+                let bottom = f32::from(r1[x0 * 4 + c]) * (1.0 - fx) + f32::from(r1[x1 * 4 + c]) * fx;
+                px[c] = (top * (1.0 - fy) + bottom * fy).round() as u8;
+            }
         }
-        out.push(b);
-        zeros = if b == 0 { zeros + 1 } else { 0 };
     }
-}
-
-/// NAL units of an Annex-B stream, without start codes (first byte is the NAL header).
-pub fn split_nals(annex_b: &[u8]) -> impl Iterator<Item = &[u8]> {
-    let mut starts = annex_b
-        .windows(3)
-        .enumerate()
-        .filter(|(_, w)| *w == [0, 0, 1])
-        .map(|(i, _)| i)
-        .peekable();
-    std::iter::from_fn(move || {
-        let begin = starts.next()? + 3;
-        let end = starts.peek().copied().unwrap_or(annex_b.len());
-        let mut nal = &annex_b[begin..end];
-        while let [rest @ .., 0] = nal {
-            nal = rest; // trailing_zero_8bits / leading zero of a 4-byte start code
-        }
-        Some(nal)
-    })
-}
-
-/// The pose sequence carried in our SEI (as written by [`FrameEncoder::encode`]), if present.
-pub fn parse_pose_seq(annex_b: &[u8]) -> Option<u64> {
-    let header = [SEI_USER_DATA_UNREGISTERED, 24];
-    split_nals(annex_b)
-        .filter(|n| nal_type(n) == NAL_SEI)
-        .find_map(|nal| {
-            let rbsp = unescape(&nal[1..]);
-            let payload = rbsp.strip_prefix(&header)?.strip_prefix(&POSE_SEI_UUID)?;
-            Some(u64::from_be_bytes(payload.get(..8)?.try_into().ok()?))
-        })
-}
-
-/// Remove emulation prevention bytes (00 00 03 → 00 00).
-fn unescape(ebsp: &[u8]) -> Vec<u8> {
-    let mut rbsp = Vec::with_capacity(ebsp.len());
-    let mut zeros = 0;
-    for &b in ebsp {
-        if zeros >= 2 && b == 3 {
-            zeros = 0;
-            continue;
-        }
-        rbsp.push(b);
-        zeros = if b == 0 { zeros + 1 } else { 0 };
-    }
-    rbsp
+    out
 }
 
 /// A moving, renderer-like test image: smooth gradients, a sinusoidal texture and a hard-edged box.
@@ -448,4 +401,22 @@ pub fn bench_encode(width: u32, height: u32, frames: u32) -> Result<BenchResult,
         bytes_per_frame: bytes as f64 / f64::from(frames.max(1)),
         idr_bytes,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::upscale_bilinear;
+
+    #[test]
+    fn upscaling_keeps_flat_colour_and_interpolates_between_pixels() {
+        let flat = [10u8, 200, 30, 255].repeat(3 * 2);
+        assert_eq!(upscale_bilinear(&flat, 3, 2, 7, 5), [10u8, 200, 30, 255].repeat(7 * 5));
+        // 2×1 black|white → 4×1: centres at 0.25 and 0.75 of the way.
+        let src = [0, 0, 0, 255, 255, 255, 255, 255];
+        let out = upscale_bilinear(&src, 2, 1, 4, 1);
+        let reds: Vec<u8> = out.chunks(4).map(|p| p[0]).collect();
+        assert_eq!(reds, vec![0, 64, 191, 255]);
+        // Same size is the identity.
+        assert_eq!(upscale_bilinear(&src, 2, 1, 2, 1), src.to_vec());
+    }
 }

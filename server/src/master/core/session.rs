@@ -1,15 +1,22 @@
-//! One streaming session's logic as a sans-IO state machine (no sockets, no clocks, no
-//! threads): the runner feeds it pose bytes, PLIs and finished frames with the time they
-//! happened, and asks it what to render next and when to wake up. Tested on simulated time.
+//! One user's frame rules, sans-IO (no sockets, no clocks, no threads): the master core
+//! feeds it pose bytes, PLIs and finished frames with the time they happened, and asks it
+//! whether a frame is wanted, what to render next and when to wake up. The render scale of
+//! a moving camera is the scheduler's to choose ([`super::scheduler`]). Tested on simulated
+//! time.
 //!
 //! Rules (DESIGN.md §5):
 //! - a pose is validated before it is kept; a refused pose gets a reason and the session
 //!   keeps its last good pose;
 //! - latest pose wins: the channel is unordered, so a pose older than the newest seen is
 //!   dropped, and a pose superseded before its frame slot is never rendered;
-//! - at most `fps` frames per second, one frame in flight, nothing rendered before the
-//!   first pose;
-//! - the first frame is an IDR; PLI/FIR ask for another (at most one per 250 ms).
+//! - at most `fps` frames per second on average, one frame in flight, nothing rendered
+//!   before the first pose. Frame slots lie on a grid one period apart, so a frame that
+//!   started late does not delay the next one (a late start can gain back at most half a
+//!   period), and a frame may start up to [`EARLY_START`] of a period before its slot, so
+//!   that users whose slots fall close together share a render round;
+//! - the first frame is an IDR; PLI/FIR ask for another (at most one per 250 ms);
+//! - with dynamic resolution, a camera at rest for [`REFINE_AFTER`] gets one full-size
+//!   frame (sent as an IDR), then that frame is reused while the camera stays put.
 
 use std::time::{Duration, Instant};
 
@@ -21,75 +28,11 @@ use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
 /// With dynamic resolution, a camera still for this long gets one full-size frame.
 pub const REFINE_AFTER: Duration = Duration::from_millis(150);
 
+/// Share of a frame period a frame may start before its slot.
+pub const EARLY_START: f64 = 0.1;
+
 /// Shortest gap between two IDRs forced by picture-loss reports.
 pub const IDR_MIN_GAP: Duration = Duration::from_millis(250);
-
-/// How large to render before upscaling to the stream size: the speed/accuracy knob.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum RenderScale {
-    /// Always this fraction of the stream's width and height (1 = exact).
-    Fixed(f32),
-    /// Dynamic resolution: adjust the scale after every frame so that rendering takes about
-    /// `budget_ms`, never below `min`.
-    Auto { budget_ms: f64, min: f32 },
-}
-
-impl RenderScale {
-    /// Parses `auto` or a number in 0.05..=1.
-    pub fn parse(s: &str, budget_ms: f64) -> Result<Self, String> {
-        if s == "auto" {
-            if !(1.0..=10_000.0).contains(&budget_ms) {
-                return Err(format!("frame budget {budget_ms} ms should be in 1..=10000"));
-            }
-            return Ok(Self::Auto { budget_ms, min: 0.25 });
-        }
-        match s.parse::<f32>() {
-            Ok(v) if (0.05..=1.0).contains(&v) => Ok(Self::Fixed(v)),
-            _ => Err(format!("render scale {s:?} should be auto or a number in 0.05..=1")),
-        }
-    }
-}
-
-/// The dynamic-resolution controller. Render time grows with the pixel count, i.e. with
-/// scale², so the correction is √(budget / measured), limited per frame (down fast, up
-/// slowly) and snapped to 1/32 so the scale settles instead of jittering.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ScaleController {
-    mode: RenderScale,
-    current: f32,
-}
-
-impl ScaleController {
-    pub fn new(mode: RenderScale) -> Self {
-        let current = match mode {
-            RenderScale::Fixed(s) => s,
-            RenderScale::Auto { min, .. } => 0.5f32.max(min),
-        };
-        Self { mode, current }
-    }
-
-    pub fn scale(&self) -> f32 {
-        self.current
-    }
-
-    pub fn is_auto(&self) -> bool {
-        matches!(self.mode, RenderScale::Auto { .. })
-    }
-
-    /// One frame at the current scale took `render_ms`.
-    pub fn observe(&mut self, render_ms: f64) {
-        let RenderScale::Auto { budget_ms, min } = self.mode else { return };
-        if !(render_ms.is_finite() && render_ms > 0.0) {
-            return;
-        }
-        let ratio = (budget_ms / render_ms).sqrt().clamp(0.7, 1.1) as f32;
-        let next = ((self.current * ratio * 32.0).round() / 32.0).clamp(min, 1.0);
-        // Dead band: within ±10% of the budget, keep the scale.
-        if (render_ms / budget_ms - 1.0).abs() > 0.1 {
-            self.current = next;
-        }
-    }
-}
 
 /// A validated pose waiting for its frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -101,7 +44,7 @@ pub struct PendingPose {
     pub received_at: Instant,
 }
 
-/// What the runner should do now: render and encode this pose.
+/// What the core should do now: render (or reuse) and encode this pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FrameJob {
     pub frame: u64,
@@ -128,6 +71,7 @@ pub struct SessionCounters {
     pub idrs_requested: u64,
 }
 
+/// One user's frame rules.
 #[derive(Debug)]
 pub struct Session {
     size: (u32, u32),
@@ -143,19 +87,22 @@ pub struct Session {
     last_idr_at: Option<Instant>,
     frame_number: u64,
     counters: SessionCounters,
-    scale: ScaleController,
+    /// Dynamic resolution: refine a camera at rest to full size.
+    refine_at_rest: bool,
     last_scale: f32,
     /// When the camera (or anchor) last changed.
     still_since: Option<Instant>,
 }
 
 impl Session {
+    /// A session at a fixed render scale (no refinement at rest).
     pub fn new(width: u32, height: u32, fps: u32) -> Self {
-        Self::with_scale(width, height, fps, RenderScale::Fixed(1.0))
+        Self::with_refinement(width, height, fps, false)
     }
 
-    pub fn with_scale(width: u32, height: u32, fps: u32, scale: RenderScale) -> Self {
-        let fps = fps.clamp(1, 120);
+    /// `refine_at_rest`: dynamic resolution, where a still camera gets one full-size frame.
+    pub fn with_refinement(width: u32, height: u32, fps: u32, refine_at_rest: bool) -> Self {
+        let fps = fps.clamp(nephele_limits::MIN_FPS, nephele_limits::MAX_FPS);
         Self {
             size: (width, height),
             frame_period: Duration::from_secs_f64(1.0 / f64::from(fps)),
@@ -168,7 +115,7 @@ impl Session {
             last_idr_at: None,
             frame_number: 0,
             counters: SessionCounters::default(),
-            scale: ScaleController::new(scale),
+            refine_at_rest,
             last_scale: f32::NAN,
             still_since: None,
         }
@@ -221,10 +168,35 @@ impl Session {
         true
     }
 
+    /// Something is waiting to be rendered: a new pose, or an owed IDR once a pose was seen.
+    pub fn wants_frame(&self) -> bool {
+        self.pending.is_some() || (self.idr_wanted && self.last_rendered.is_some())
+    }
+
+    /// [`Self::poll_frame`] would start a frame now.
+    pub fn ready(&self, now: Instant) -> bool {
+        self.in_flight.is_none() && self.slot_open(now) && self.wants_frame()
+    }
+
+    fn slot_open(&self, now: Instant) -> bool {
+        self.next_slot.is_none_or(|t| now + self.frame_period.mul_f64(EARLY_START) >= t)
+    }
+
+    /// A frame is rendering or encoding.
+    pub fn in_flight(&self) -> Option<&FrameJob> {
+        self.in_flight.as_ref()
+    }
+
+    /// When the camera last moved (a new pose that differs from the one before).
+    pub fn moved_at(&self) -> Option<Instant> {
+        self.still_since
+    }
+
     /// The frame to start now, if any: a new pose is waiting (or an IDR is owed and a pose
-    /// was ever seen), no frame is in flight, and the frame slot has come.
-    pub fn poll_frame(&mut self, now: Instant) -> Option<FrameJob> {
-        if self.in_flight.is_some() || self.next_slot.is_some_and(|t| now < t) {
+    /// was ever seen), no frame is in flight, and the frame slot has come. A moving camera
+    /// renders at `moving_scale` (the scheduler's choice).
+    pub fn poll_frame(&mut self, now: Instant, moving_scale: f32) -> Option<FrameJob> {
+        if self.in_flight.is_some() || !self.slot_open(now) {
             return None;
         }
         let pose = match self.pending.take() {
@@ -236,9 +208,9 @@ impl Session {
         let same_pose = self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
         // Moving: the controller's scale. Still: keep the last pixels, or, with dynamic
         // resolution and a camera at rest for REFINE_AFTER, render once at full size.
-        let at_rest = self.scale.is_auto() && self.still_since.is_some_and(|t| now.duration_since(t) >= REFINE_AFTER);
+        let at_rest = self.refine_at_rest && self.still_since.is_some_and(|t| now.duration_since(t) >= REFINE_AFTER);
         let render_scale = match (same_pose, at_rest) {
-            (false, _) => self.scale.scale(),
+            (false, _) => moving_scale,
             (true, true) => 1.0,
             (true, false) => self.last_scale,
         };
@@ -252,7 +224,9 @@ impl Session {
             self.last_idr_at = Some(now);
         }
         self.idr_wanted = false;
-        self.next_slot = Some(now + self.frame_period);
+        // The next slot on the grid, but never less than half a period away.
+        let grid = self.next_slot.map_or(now, |slot| slot) + self.frame_period;
+        self.next_slot = Some(grid.max(now + self.frame_period / 2));
         self.in_flight = Some(job);
         Some(job)
     }
@@ -261,12 +235,6 @@ impl Session {
     pub fn frame_done(&mut self, times: FrameTimes) -> Option<FrameInfo> {
         let job = self.in_flight.take()?;
         self.counters.frames += 1;
-        // Only frames of a moving camera teach the controller (refinements are full size
-        // on purpose).
-        let moved = self.last_rendered.is_none_or(|p| (p.view, p.instance) != (job.pose.view, job.pose.instance));
-        if moved && !job.same_as_previous {
-            self.scale.observe(times.render_ms);
-        }
         self.last_rendered = Some(job.pose);
         self.last_scale = job.render_scale;
         Some(FrameInfo {
@@ -278,6 +246,8 @@ impl Session {
             queue_ms: job.started_at.duration_since(job.pose.received_at).as_secs_f64() * 1e3,
             times,
             render_scale: job.render_scale,
+            batch_views: 0,
+            reused: false,
         })
     }
 
@@ -288,13 +258,12 @@ impl Session {
         }
     }
 
-    /// When the runner should call [`Self::poll_frame`] again, if a frame is waiting for its slot.
+    /// When the core should call [`Self::poll_frame`] again, if a frame is waiting for its slot.
     pub fn next_wakeup(&self) -> Option<Instant> {
-        let waiting = self.pending.is_some() || (self.idr_wanted && self.last_rendered.is_some());
-        if self.in_flight.is_some() || !waiting {
+        if self.in_flight.is_some() || !self.wants_frame() {
             return None;
         }
-        self.next_slot
+        self.next_slot.map(|t| t.checked_sub(self.frame_period.mul_f64(EARLY_START)).unwrap_or(t))
     }
 
     fn repeat_pose(&self, now: Instant) -> Option<PendingPose> {
@@ -331,13 +300,13 @@ mod tests {
     fn nothing_before_the_first_pose_then_an_idr() {
         let t0 = Instant::now();
         let mut s = Session::new(W, H, 50);
-        assert_eq!(s.poll_frame(t0), None);
+        assert_eq!(s.poll_frame(t0, 1.0), None);
         assert_eq!(s.next_wakeup(), None);
         // A PLI before any pose does not invent a frame.
         assert!(!s.on_picture_loss(t0));
-        assert_eq!(s.poll_frame(ms(t0, 5)), None);
+        assert_eq!(s.poll_frame(ms(t0, 5), 1.0), None);
         s.on_pose(&pose(1, 0.0), ms(t0, 10)).unwrap();
-        let job = s.poll_frame(ms(t0, 10)).unwrap();
+        let job = s.poll_frame(ms(t0, 10), 1.0).unwrap();
         assert!(job.idr && job.frame == 1 && job.pose.seq == 1);
         assert!(!job.same_as_previous);
     }
@@ -347,19 +316,19 @@ mod tests {
         let t0 = Instant::now();
         let mut s = Session::new(W, H, 25); // 40 ms period
         s.on_pose(&pose(1, 0.0), t0).unwrap();
-        let job = s.poll_frame(t0).unwrap();
+        let job = s.poll_frame(t0, 1.0).unwrap();
         // While a frame is in flight, new poses queue; only the newest survives.
         s.on_pose(&pose(2, 1.0), ms(t0, 10)).unwrap();
         s.on_pose(&pose(4, 3.0), ms(t0, 20)).unwrap();
         assert_eq!(s.on_pose(&pose(3, 2.0), ms(t0, 21)), Ok(false), "reordered older pose is dropped");
-        assert_eq!(s.poll_frame(ms(t0, 25)), None, "one frame in flight");
+        assert_eq!(s.poll_frame(ms(t0, 25), 1.0), None, "one frame in flight");
         let info = s.frame_done(FrameTimes { render_ms: 5.0, ..Default::default() }).unwrap();
         assert_eq!((info.frame, info.pose_seq), (1, 1));
         assert_eq!(info.t_client_ms, 20.0);
-        // The slot opens 40 ms after the previous start.
-        assert_eq!(s.next_wakeup(), Some(ms(t0, 40)));
-        assert_eq!(s.poll_frame(ms(t0, 39)), None);
-        let job2 = s.poll_frame(ms(t0, 40)).unwrap();
+        // The slot opens 40 ms after the previous start, less the early-start allowance (4 ms).
+        assert_eq!(s.next_wakeup(), Some(ms(t0, 36)));
+        assert_eq!(s.poll_frame(ms(t0, 35), 1.0), None);
+        let job2 = s.poll_frame(ms(t0, 40), 1.0).unwrap();
         assert_eq!((job2.frame, job2.pose.seq), (2, 4));
         assert!(!job2.idr);
         assert!((job2.started_at.duration_since(job2.pose.received_at).as_millis()) == 20);
@@ -378,7 +347,7 @@ mod tests {
         for t in 0..2000u64 {
             seq += 1;
             s.on_pose(&pose(seq, t as f64 * 0.1), ms(t0, t)).unwrap();
-            if s.poll_frame(ms(t0, t)).is_some() {
+            if s.poll_frame(ms(t0, t), 1.0).is_some() {
                 frames += 1;
             }
             if t % 3 == 2 {
@@ -398,7 +367,7 @@ mod tests {
         assert!(s.on_pose(&nan, t0).is_err());
         assert!(s.on_pose(&pose(3, 5.0)[..50], t0).is_err());
         assert!(s.on_pose(&[0u8; 4096], t0).is_err());
-        let job = s.poll_frame(t0).unwrap();
+        let job = s.poll_frame(t0, 1.0).unwrap();
         assert_eq!(job.pose.seq, 1);
         // A refused pose does not advance the sequence: seq 2 may still come, valid.
         s.frame_done(FrameTimes::default());
@@ -411,86 +380,53 @@ mod tests {
         let t0 = Instant::now();
         let mut s = Session::new(W, H, 50);
         s.on_pose(&pose(1, 0.0), t0).unwrap();
-        s.poll_frame(t0).unwrap();
+        s.poll_frame(t0, 1.0).unwrap();
         s.frame_done(FrameTimes::default());
         assert!(!s.on_picture_loss(ms(t0, 100)), "within 250 ms of the first IDR");
         assert!(s.on_picture_loss(ms(t0, 300)));
         assert!(!s.on_picture_loss(ms(t0, 301)), "already owed");
-        assert_eq!(s.next_wakeup(), Some(ms(t0, 20)));
-        let job = s.poll_frame(ms(t0, 300)).unwrap();
+        assert_eq!(s.next_wakeup(), Some(ms(t0, 18)), "the 20 ms slot less the early-start allowance");
+        let job = s.poll_frame(ms(t0, 300), 1.0).unwrap();
         assert!(job.idr && job.same_as_previous && job.pose.seq == 1);
         s.frame_done(FrameTimes::default());
-        assert_eq!(s.poll_frame(ms(t0, 400)), None, "no new pose, no IDR owed: nothing to do");
-    }
-
-    #[test]
-    fn dynamic_resolution_settles_near_the_budget() {
-        // A renderer whose time is proportional to the pixel count: 200 ms at full size.
-        let mut c = ScaleController::new(RenderScale::Auto { budget_ms: 40.0, min: 0.25 });
-        let model = |s: f32| 200.0 * f64::from(s * s);
-        for _ in 0..40 {
-            c.observe(model(c.scale()));
-        }
-        let ms = model(c.scale());
-        assert!((34.0..=46.0).contains(&ms), "settled at scale {} = {ms:.1} ms", c.scale());
-        let settled = c.scale();
-        c.observe(model(settled));
-        assert_eq!(c.scale(), settled, "no jitter once settled");
-        // A fast renderer climbs to full size; a hopeless one stops at the minimum.
-        let mut fast = ScaleController::new(RenderScale::Auto { budget_ms: 40.0, min: 0.25 });
-        (0..40).for_each(|_| fast.observe(10.0 * f64::from(fast.scale().powi(2))));
-        assert_eq!(fast.scale(), 1.0);
-        let mut slow = ScaleController::new(RenderScale::Auto { budget_ms: 40.0, min: 0.25 });
-        (0..40).for_each(|_| slow.observe(1e5));
-        assert_eq!(slow.scale(), 0.25);
-        // Fixed scales never move; garbage timings are ignored.
-        let mut fixed = ScaleController::new(RenderScale::Fixed(0.75));
-        fixed.observe(1e6);
-        assert_eq!(fixed.scale(), 0.75);
-        c.observe(f64::NAN);
-        assert_eq!(c.scale(), settled);
-        assert!(RenderScale::parse("0", 40.0).is_err() && RenderScale::parse("1.5", 40.0).is_err());
-        assert!(RenderScale::parse("auto", f64::NAN).is_err() && RenderScale::parse("auto", -5.0).is_err());
-        assert_eq!(RenderScale::parse("0.5", 40.0), Ok(RenderScale::Fixed(0.5)));
+        assert_eq!(s.poll_frame(ms(t0, 400), 1.0), None, "no new pose, no IDR owed: nothing to do");
     }
 
     #[test]
     fn a_still_camera_gets_one_full_size_frame_then_reuses_it() {
         let t0 = Instant::now();
-        let mut s = Session::with_scale(W, H, 50, RenderScale::Auto { budget_ms: 30.0, min: 0.25 });
+        let mut s = Session::with_refinement(W, H, 50, true);
         let mut seq = 0;
-        let mut step = |s: &mut Session, t: u64, az: f64, render_ms: f64| {
+        let mut step = |s: &mut Session, t: u64, az: f64, moving_scale: f32| {
             seq += 1;
             s.on_pose(&pose(seq, az), ms(t0, t)).unwrap();
-            let job = s.poll_frame(ms(t0, t)).expect("a frame");
-            s.frame_done(FrameTimes { render_ms, ..Default::default() });
+            let job = s.poll_frame(ms(t0, t), moving_scale).expect("a frame");
+            s.frame_done(FrameTimes::default());
             job
         };
-        // Moving: the controller's scale (starts at 0.5; 15 ms is under budget → grows).
-        let moving = step(&mut s, 0, 0.0, 15.0);
+        // Moving: the scheduler's scale.
+        let moving = step(&mut s, 0, 0.0, 0.5);
         assert_eq!(moving.render_scale, 0.5);
-        let moving = step(&mut s, 20, 1.0, 15.0);
-        assert!(moving.render_scale > 0.5 && moving.render_scale < 1.0, "{}", moving.render_scale);
-        let scale = s.scale.scale();
-        // Stopped, but not for long: the last pixels are reused.
-        let held = step(&mut s, 40, 1.0, 0.0);
-        assert!(held.same_as_previous && held.render_scale == moving.render_scale);
-        // At rest for 150 ms: one full-size render, then reuse at full size.
-        let refined = step(&mut s, 180, 1.0, 400.0);
+        let moving = step(&mut s, 20, 1.0, 0.625);
+        assert_eq!(moving.render_scale, 0.625);
+        // Stopped, but not for long: the last pixels are reused, whatever the scheduler says.
+        let held = step(&mut s, 40, 1.0, 0.25);
+        assert!(held.same_as_previous && held.render_scale == 0.625);
+        // At rest for 150 ms: one full-size render, sent as an IDR, then reuse at full size.
+        let refined = step(&mut s, 180, 1.0, 0.25);
         assert!(!refined.same_as_previous && refined.render_scale == 1.0 && refined.idr);
-        let reuse = step(&mut s, 200, 1.0, 0.0);
+        let reuse = step(&mut s, 200, 1.0, 0.25);
         assert!(reuse.same_as_previous && reuse.render_scale == 1.0);
-        assert_eq!(s.scale.scale(), scale, "the slow refinement did not teach the controller");
-        // Moving again: back to the controller's scale.
-        let again = step(&mut s, 220, 2.0, 15.0);
-        assert_eq!(again.render_scale, scale);
+        // Moving again: back to the scheduler's scale.
+        let again = step(&mut s, 220, 2.0, 0.5);
+        assert_eq!(again.render_scale, 0.5);
         // A fixed scale never refines.
-        let mut f = Session::with_scale(W, H, 50, RenderScale::Fixed(0.5));
+        let mut f = Session::new(W, H, 50);
         f.on_pose(&pose(1, 0.0), t0).unwrap();
-        f.poll_frame(t0).unwrap();
+        f.poll_frame(t0, 0.5).unwrap();
         f.frame_done(FrameTimes::default());
         f.on_pose(&pose(2, 0.0), ms(t0, 500)).unwrap();
-        let job = f.poll_frame(ms(t0, 500)).unwrap();
+        let job = f.poll_frame(ms(t0, 500), 0.5).unwrap();
         assert!(job.same_as_previous && job.render_scale == 0.5);
     }
 
@@ -499,12 +435,12 @@ mod tests {
         let t0 = Instant::now();
         let mut s = Session::new(W, H, 50);
         s.on_pose(&pose(1, 0.0), t0).unwrap();
-        s.poll_frame(t0).unwrap();
+        s.poll_frame(t0, 1.0).unwrap();
         s.frame_done(FrameTimes::default());
         s.on_pose(&pose(2, 1.0), ms(t0, 20)).unwrap();
-        s.poll_frame(ms(t0, 20)).unwrap();
+        s.poll_frame(ms(t0, 20), 1.0).unwrap();
         s.frame_failed();
         s.on_pose(&pose(3, 2.0), ms(t0, 40)).unwrap();
-        assert!(s.poll_frame(ms(t0, 40)).unwrap().idr);
+        assert!(s.poll_frame(ms(t0, 40), 1.0).unwrap().idr);
     }
 }

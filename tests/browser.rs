@@ -4,14 +4,9 @@
 //! `tests/browser/viewer.mjs`. Missing Chromium, Node or `npm ci` fails loudly: `tests/run`
 //! installs them.
 
-use std::{path::PathBuf, process::Command, sync::Arc};
+use std::{path::PathBuf, process::Command};
 
-use nephele::{farm::Farm, master::MasterConfig, rtc::RtcConfig, session::RenderScale, web};
-use nephele_renderer::{CpuBackend, RenderSettings};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+use nephele_e2e::{Reap, core_config, nephele, repo};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
@@ -22,11 +17,8 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
         repo().join("tests/browser/node_modules/playwright-core").exists(),
         "playwright-core is missing: run `npm ci --prefix tests/browser` (tests/run does)"
     );
-    let asset = repo().join("examples/assets/trio-small.nolf");
-    let farm = Arc::new(Farm::load(&[format!("trio={}", asset.display())], &CpuBackend, RenderSettings::default()).unwrap());
-    let cfg = MasterConfig { name: "browser-test".into(), capacity: 4, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, render_scale: RenderScale::Fixed(1.0) };
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = web::spawn_local(listener, farm, cfg).await.unwrap();
+    let (server, _) = nephele_e2e::start_server(core_config(4)).await;
+    let addr = server.addr;
 
     let url = format!("http://{addr}/");
     let output = tokio::task::spawn_blocking(move || Command::new("node").arg(script).arg(url).env("CHROMIUM", chromium).output())
@@ -44,21 +36,11 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     assert!(report["meanAbsDiff"].as_f64().unwrap() > 2.0, "{report}");
 }
 
-/// Kills a child process when dropped, so a failing assertion leaves no server behind.
-struct Reap(std::process::Child);
-
-impl Drop for Reap {
-    fn drop(&mut self) {
-        self.0.kill().ok();
-        self.0.wait().ok();
-    }
-}
-
 /// Starts `nephele serve` on `addr` and waits for its "open http://…" line.
 fn serve(addr: &str) -> Reap {
     use std::io::{BufRead, BufReader};
-    let scene = format!("trio={}", repo().join("examples/assets/trio-small.nolf").display());
-    let mut child = Command::new(env!("CARGO_BIN_EXE_nephele"))
+    let scene = nephele_e2e::fixture_scene();
+    let mut child = nephele()
         .args(["serve", "--listen", addr, "--scene", &scene, "--backend", "cpu", "--loopback-only"])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())

@@ -1,7 +1,8 @@
 //! A real streaming client in Rust: joins through signaling, offers a recvonly H.264 video
 //! m-line and the unordered `pose` channel (like the browser page), reassembles RTP into
 //! access units on the marker bit, and decodes them with OpenH264 on its own thread.
-//! Used by `nephele replay`, `nephele bench stream` and the end-to-end tests.
+//! Used by `nephele replay`, `nephele bench stream|users` and the end-to-end tests. It
+//! shares only the wire protocol ([`crate::wire`]) with the master.
 
 use std::{
     sync::{
@@ -29,11 +30,13 @@ use webrtc::{
     },
 };
 
-use crate::{
-    encode::parse_pose_seq,
-    rtc::{RtcConfig, build_api, candidate_json},
-    wire::{PoseMessage, ToViewer},
+use crate::wire::{
+    PoseMessage, ToViewer,
+    media::{RtcConfig, build_api, candidate_json},
+    sei::parse_pose_seq,
 };
+
+pub mod replay;
 
 /// What to ask signaling for.
 #[derive(Debug, Clone)]

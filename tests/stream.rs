@@ -4,12 +4,13 @@
 //! - replay: every decoded frame answers a pose that was sent; PSNR vs a direct render ≥ 30 dB;
 //! - AR: the green keyed out of the decoded video matches the renderer's alpha (IoU ≥ 0.95);
 //! - PLI brings an IDR; a full master says `no_capacity`;
+//! - several users with different frame rates on one master each get frames of their own
+//!   poses, paced at their own rates; `/metrics` shows them;
 //! - bad input on one session (signaling and pose channel) gets clear errors while another
 //!   session keeps streaming.
 
 use std::{
     net::SocketAddr,
-    path::PathBuf,
     sync::{
         Arc,
         atomic::{AtomicBool, AtomicUsize, Ordering},
@@ -21,30 +22,21 @@ use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use glam::Mat4;
 use nephele::{
-    client::{ClientOptions, StreamClient},
-    farm::Farm,
-    master::MasterConfig,
-    replay::{ReplayOptions, Trace, replay},
-    rtc::RtcConfig,
-    session::RenderScale,
-    web,
+    catalog::Catalog,
+    client::{
+        ClientOptions, StreamClient,
+        replay::{ReplayOptions, Trace, replay},
+    },
     wire::{PoseMessage, ToViewer},
 };
-use nephele_renderer::{CpuBackend, RenderSettings};
+use nephele_e2e::core_config;
 use nephele_signaling::Mode;
 use serde_json::Value;
 use tokio_tungstenite::tungstenite::Message;
 
-fn fixture() -> String {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/assets/trio-small.nolf");
-    format!("trio={}", p.display())
-}
-
-async fn start_server(capacity: u32) -> (SocketAddr, Arc<Farm>) {
-    let farm = Arc::new(Farm::load(&[fixture()], &CpuBackend, RenderSettings::default()).expect("fixture asset"));
-    let cfg = MasterConfig { name: "test".into(), capacity, token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, render_scale: RenderScale::Fixed(1.0) };
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    (web::spawn_local(listener, Arc::clone(&farm), cfg).await.unwrap(), farm)
+async fn start_server(capacity: u32) -> (SocketAddr, Arc<Catalog>) {
+    let (server, catalog) = nephele_e2e::start_server(core_config(capacity)).await;
+    (server.addr, catalog)
 }
 
 fn client_opts(addr: SocketAddr, mode: Mode, width: u32, height: u32) -> ClientOptions {
@@ -59,11 +51,11 @@ fn short_trace(name: &str, poses: usize) -> Trace {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
-    let (addr, farm) = start_server(4).await;
+    let (addr, catalog) = start_server(4).await;
     let trace = short_trace("orbit", 100);
     let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2) };
-    let scene = &farm.scenes["trio"];
-    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), farm.settings))).await.unwrap();
+    let scene = &catalog.scenes["trio"];
+    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await.unwrap();
     println!("{report}");
     assert!(report.frames_decoded >= 5, "only {} frames decoded", report.frames_decoded);
     assert_eq!(report.frames_unknown_pose, 0, "frames answering poses never sent");
@@ -77,13 +69,13 @@ async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ar_keyed_alpha_matches_the_renderer_alpha() {
-    let (addr, farm) = start_server(4).await;
+    let (addr, catalog) = start_server(4).await;
     let trace = short_trace("zoom", 60);
     // The object placed on a "table": moved and scaled, as the AR page's plane anchor does.
     let anchor = Mat4::from_scale_rotation_translation(glam::Vec3::splat(0.8), glam::Quat::IDENTITY, glam::Vec3::new(0.2, -0.1, 0.0));
     let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2) };
-    let scene = &farm.scenes["trio"];
-    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), farm.settings))).await.unwrap();
+    let scene = &catalog.scenes["trio"];
+    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await.unwrap();
     println!("{report}");
     assert!(report.errors.is_empty(), "{:?}", report.errors);
     assert!(report.quality.len() >= 3, "{} frames compared", report.quality.len());
@@ -192,8 +184,9 @@ async fn bad_input_gets_clear_errors_while_another_session_keeps_streaming() {
     let cases: &[(&[&str], &str, &str)] = &[
         (&["{not json"], "bad_message", ""),
         (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":100000,"height":480,"fps":50}"#], "bad_request", "100000x480"),
-        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":7680,"height":4320,"fps":50}"#], "rejected", "3840x2160"),
-        (&[r#"{"type":"join","scene":"nope","mode":"viewer","width":64,"height":64,"fps":50}"#], "rejected", "unknown scene"),
+        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":7680,"height":4320,"fps":50}"#], "bad_request", "outside the stream limits"),
+        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":0}"#], "bad_request", "fps 0"),
+        (&[r#"{"type":"join","scene":"nope","mode":"viewer","width":64,"height":64,"fps":50}"#], "unknown_scene", "no master serves scene \"nope\"; scenes on offer: trio"),
         (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":50}"#, r#"{"type":"offer","sdp":"garbage"}"#], "", "bad offer"),
     ];
     for (msgs, code, words) in cases {
@@ -291,4 +284,49 @@ async fn picture_loss_brings_an_idr_and_a_full_master_says_no_capacity() {
     assert!(frames.iter().skip(1).filter(|f| f.times.idr).count() == 1, "exactly one more IDR: {:?}", frames.iter().map(|f| f.times.idr).collect::<Vec<_>>());
     stop.store(true, Ordering::Relaxed);
     posing.await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn users_with_different_fps_each_get_their_own_poses() {
+    let (server, _) = nephele_e2e::start_server(core_config(8)).await;
+    let addr = server.addr;
+    let base = Trace::builtin("orbit").unwrap();
+    let mut runs = Vec::new();
+    for (i, fps) in [8u32, 20, 40].into_iter().enumerate() {
+        let mut trace = base.clone();
+        trace.poses.truncate(150);
+        trace.poses.rotate_left(40 * i);
+        let mut client = client_opts(addr, Mode::Viewer, 96, 72);
+        client.fps = fps;
+        client.keep_pixels = false;
+        let opts = ReplayOptions { client, anchor: None, quality_every: 0, save_dir: None, drain: Duration::from_secs(1) };
+        runs.push((fps, tokio::spawn(async move { replay(&trace, &opts, None).await })));
+    }
+    // While they stream, the metrics page lists every user with its target.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let metrics = http_get(addr, "/metrics").await;
+    for fps in ["8.0", "20.0", "40.0"] {
+        assert!(metrics.lines().any(|l| l.starts_with("nephele_user_target_fps{") && l.ends_with(fps)), "no user at {fps} fps in:\n{metrics}");
+    }
+    assert!(metrics.contains("nephele_batch_views_bucket") && metrics.contains("nephele_render_ms_count"), "{metrics}");
+    for (fps, run) in runs {
+        let report = run.await.unwrap().unwrap();
+        println!("{fps} fps: {report}");
+        assert!(report.frames_decoded >= 10, "{fps} fps: {} frames", report.frames_decoded);
+        assert_eq!(report.frames_unknown_pose + report.frames_without_pose, 0, "{fps} fps: frames of poses it never sent");
+        assert!(report.errors.is_empty(), "{:?}", report.errors);
+        // Paced at its own rate (never above it; the lower bound is loose, machines vary).
+        assert!(report.fps <= 1.1 * f64::from(fps) && report.fps >= 0.4 * f64::from(fps), "{fps} fps target: got {:.1}", report.fps);
+    }
+}
+
+/// A plain HTTP/1.1 GET on loopback; returns the body.
+async fn http_get(addr: SocketAddr, path: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes()).await.unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).await.unwrap();
+    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
+    out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default()
 }

@@ -1,33 +1,32 @@
-//! The scenes a master can render: each asset prepared once on the chosen backend and
-//! shared by every session that views it. Sessions render on the blocking pool; the CPU
-//! backend spreads each frame over rayon's threads, the GPU backend queues on the device.
+//! The scene catalogue of a master: each asset loaded once, prepared on the chosen backend
+//! and shared by every render worker of the process, with what the scheduler needs to know
+//! of it ([`SceneInfo`]: bounds and the coarse proxy for cost estimates).
 
 use std::{collections::BTreeMap, sync::Arc};
 
 use anyhow::{Context, Result, bail};
-use glam::Vec3;
 use nephele_renderer::{Backend, PreparedAsset, RenderSettings};
 
-use crate::assets::load_asset;
+use crate::{
+    assets::load_asset,
+    master::core::{SceneInfo, estimate::Proxy},
+};
 
 /// One servable scene.
 pub struct SceneEntry {
-    pub name: String,
     pub prepared: Box<dyn PreparedAsset>,
-    /// Centre and radius of the asset's bounding sphere, scene units (identity instance).
-    pub center: Vec3,
-    pub radius: f32,
+    pub info: SceneInfo,
 }
 
 /// Every scene of this master, plus how to render them.
-pub struct Farm {
+pub struct Catalog {
     pub scenes: BTreeMap<String, Arc<SceneEntry>>,
     pub default_scene: String,
     pub settings: RenderSettings,
     pub backend_name: String,
 }
 
-impl Farm {
+impl Catalog {
     /// `specs` are `name=asset` or a bare asset (`builtin:trio` → named `trio`,
     /// `path/lego.nolf` → `lego`). The first is the default.
     pub fn load(specs: &[String], backend: &dyn Backend, settings: RenderSettings) -> Result<Self> {
@@ -46,10 +45,15 @@ impl Farm {
             }
             let asset = load_asset(asset_spec)?;
             let b = asset.bounds;
-            let (center, radius) = ((b.min + b.max) * 0.5, (b.max - b.min).length() * 0.5);
+            let info = SceneInfo {
+                name: name.clone(),
+                center: (b.min + b.max) * 0.5,
+                radius: (b.max - b.min).length() * 0.5,
+                proxy: Proxy::from_density(&asset.density),
+            };
             let prepared = backend.prepare(asset).with_context(|| format!("preparing scene {name}"))?;
             default_scene.get_or_insert_with(|| name.clone());
-            if scenes.insert(name.clone(), Arc::new(SceneEntry { name: name.clone(), prepared, center, radius })).is_some() {
+            if scenes.insert(name.clone(), Arc::new(SceneEntry { prepared, info })).is_some() {
                 bail!("scene {name:?} is given twice");
             }
         }
@@ -58,6 +62,10 @@ impl Farm {
 
     pub fn names(&self) -> Vec<String> {
         self.scenes.keys().cloned().collect()
+    }
+
+    pub fn infos(&self) -> Vec<SceneInfo> {
+        self.scenes.values().map(|s| s.info.clone()).collect()
     }
 }
 

@@ -8,46 +8,29 @@
 //! interceptors (NACK responder, RTCP reports). Picture-loss reports arrive through the
 //! sender's RTCP reader and become [`PeerEvent::PictureLoss`].
 
-use std::{net::IpAddr, sync::Arc, time::Duration};
+use std::{sync::Arc, time::Duration};
 
 use anyhow::{Context, Result};
 use bytes::Bytes;
 use serde_json::Value;
 use tokio::sync::{Mutex, mpsc};
 use webrtc::{
-    api::{
-        API, APIBuilder, interceptor_registry::register_default_interceptors, media_engine::MediaEngine,
-        setting_engine::SettingEngine,
-    },
+    api::API,
     data_channel::{RTCDataChannel, data_channel_message::DataChannelMessage},
     ice_transport::ice_candidate::RTCIceCandidateInit,
-    interceptor::registry::Registry,
     media::Sample,
     peer_connection::{
         RTCPeerConnection, configuration::RTCConfiguration, peer_connection_state::RTCPeerConnectionState,
         sdp::session_description::RTCSessionDescription,
     },
     rtcp::payload_feedbacks::{full_intra_request::FullIntraRequest, picture_loss_indication::PictureLossIndication},
-    rtp_transceiver::{
-        RTCPFeedback,
-        rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType},
-    },
     track::track_local::{TrackLocal, track_local_static_sample::TrackLocalStaticSample},
 };
 
-/// The only video format we send (and the only one the test client accepts).
-pub const H264_FMTP: &str = "level-asymmetry-allowed=1;packetization-mode=1;profile-level-id=42e01f";
-/// Largest pose-channel message we look at; anything longer is refused unread.
-pub const MAX_CHANNEL_MESSAGE: usize = 4096;
+use crate::wire::media::{candidate_json, h264_codec};
 
-/// Network settings for every peer connection of a process.
-#[derive(Debug, Clone, Default)]
-pub struct RtcConfig {
-    /// Gather loopback candidates only (tests, a browser on the same machine).
-    pub loopback_only: bool,
-    /// Public addresses to advertise instead of the host's (server behind 1:1 NAT).
-    pub public_ips: Vec<String>,
-}
+/// Largest pose-channel message we look at; anything longer is refused unread.
+pub const MAX_CHANNEL_MESSAGE: usize = nephele_limits::MAX_POSE_MESSAGE_BYTES;
 
 /// Something that happened on a peer connection, delivered in order on one channel.
 #[derive(Debug, Clone, PartialEq)]
@@ -81,53 +64,6 @@ pub trait MasterPeer: Send + Sync + 'static {
     /// Sends a text message on the pose channel (dropped if the channel is not open).
     fn send_text(&self, text: String) -> impl Future<Output = Result<()>> + Send;
     fn close(&self) -> impl Future<Output = ()> + Send;
-}
-
-/// Builds the `webrtc` API object shared by all peers of a process.
-pub fn build_api(cfg: &RtcConfig) -> Result<Arc<API>> {
-    let mut media = MediaEngine::default();
-    media.register_codec(h264_codec(), RTPCodecType::Video).context("registering H.264")?;
-    let mut registry = Registry::new();
-    // After register_codec: the interceptors add feedback only to codecs already registered.
-    registry = register_default_interceptors(registry, &mut media).context("registering interceptors")?;
-    let mut settings = SettingEngine::default();
-    settings.set_include_loopback_candidate(true);
-    if cfg.loopback_only {
-        settings.set_ip_filter(Box::new(|ip: IpAddr| ip.is_loopback()));
-    }
-    if !cfg.public_ips.is_empty() {
-        settings.set_nat_1to1_ips(cfg.public_ips.clone(), webrtc::ice_transport::ice_candidate_type::RTCIceCandidateType::Host);
-    }
-    Ok(Arc::new(
-        APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build(),
-    ))
-}
-
-/// A local candidate as the `RTCIceCandidateInit` JSON a browser accepts. Bundled: every
-/// candidate belongs to m-line 0; the crate's mid ("") matches no m-line in a browser, so
-/// the mid is left out.
-pub fn candidate_json(init: &RTCIceCandidateInit) -> Value {
-    serde_json::json!({
-        "candidate": init.candidate,
-        "sdpMid": null,
-        "sdpMLineIndex": init.sdp_mline_index.unwrap_or(0),
-    })
-}
-
-/// H.264 constrained baseline 3.1, packetization mode 1, NACK/PLI/FIR.
-pub fn h264_codec() -> RTCRtpCodecParameters {
-    let fb = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
-    RTCRtpCodecParameters {
-        capability: RTCRtpCodecCapability {
-            mime_type: webrtc::api::media_engine::MIME_TYPE_H264.into(),
-            clock_rate: 90_000,
-            channels: 0,
-            sdp_fmtp_line: H264_FMTP.into(),
-            rtcp_feedback: vec![fb("nack", ""), fb("nack", "pli"), fb("ccm", "fir")],
-        },
-        payload_type: 102,
-        ..Default::default()
-    }
 }
 
 /// [`MasterPeer`] on the `webrtc` crate.

@@ -1,0 +1,280 @@
+//! `nephele bench …`: `render` (per backend and size, where a frame's time goes — ray march
+//! vs network — rays/s and the fraction of rays that hit; plus the asset's memory table),
+//! `encode`, `stream` (latency per stage through an in-process server), `tradeoff`
+//! (NEPHELE Table 5 / Fig. 14, in [`super::tradeoff`]) and `users` (many users on one
+//! server, in [`super::users`]).
+
+use std::{fmt::Write, path::PathBuf, sync::Arc};
+
+use anyhow::Result;
+use glam::DVec3;
+use nephele_renderer::{Backend, Intrinsics, RenderSettings, View, ViewRequest};
+use nephele_signaling::Mode;
+
+use super::replay::load_trace;
+use crate::{
+    assets::{BackendChoice, DEFAULT_ASSET, load_asset, make_backend, parse_size},
+    catalog::Catalog,
+    client::{ClientOptions, replay},
+    master::{
+        MasterConfig,
+        core::{CoreConfig, scheduler::RenderScale},
+    },
+    web,
+    wire::media::RtcConfig,
+};
+
+#[derive(clap::Subcommand)]
+pub enum BenchCommand {
+    /// The speed/accuracy table (NEPHELE Table 5) and distance sweep (Fig. 14) from a trained
+    /// i-NGP checkpoint: trains the i-NOLF variants, scores held-out views, times frames.
+    Tradeoff {
+        dataset: PathBuf,
+        /// The teacher: an i-NGP checkpoint (e.g. DIR.train/ngp.ckpt from `nephele train`).
+        #[arg(long)]
+        teacher: PathBuf,
+        #[arg(long, default_value_t = 2)]
+        downscale: u32,
+        /// Held-out views as in `train --holdout-every` (needed without a test split).
+        #[arg(long)]
+        holdout_every: Option<usize>,
+        /// Appearance steps per student.
+        #[arg(long, default_value_t = 2000)]
+        nolf_steps: u64,
+        /// PSH grid sizes (must include 256).
+        #[arg(long, default_value = "128,256,512", value_delimiter = ',')]
+        psh: Vec<u32>,
+        /// Frame size for the timings.
+        #[arg(long, default_value = "800x800")]
+        size: String,
+        /// Held-out views scored.
+        #[arg(long, default_value_t = 10)]
+        views: usize,
+        /// Camera distances in the sweep.
+        #[arg(long, default_value_t = 7)]
+        distances: usize,
+        /// Where the plot and JSON go.
+        #[arg(long, default_value = "tradeoff")]
+        out: PathBuf,
+        /// Also time i-NGP and the asset on wgpu (one frame each; slow on software Vulkan).
+        #[arg(long)]
+        gpu: bool,
+    },
+    /// RGB→I420 and H.264 encode times on a moving test pattern.
+    Encode {
+        #[arg(long, default_value = "640x480,1280x720")]
+        sizes: String,
+        #[arg(long, default_value_t = 200)]
+        frames: u32,
+    },
+    /// Per-stage and end-to-end streaming latency through an in-process server and the
+    /// replay client, per frame size.
+    Stream {
+        #[arg(long, default_value = "builtin:trio-small")]
+        asset: String,
+        #[arg(long, default_value = "640x480,1280x720")]
+        sizes: String,
+        #[arg(long, default_value = "orbit")]
+        trace: String,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendChoice,
+        #[arg(long, default_value_t = 50)]
+        fps: u32,
+        /// Render scales to compare (each a fresh server): numbers in 0.05..=1 or auto.
+        #[arg(long, value_delimiter = ',', default_value = "1,0.5,auto")]
+        render_scales: Vec<String>,
+        /// Render-time target of the auto scale, ms.
+        #[arg(long, default_value_t = 30.0)]
+        frame_budget_ms: f64,
+    },
+    /// Ray-march / network / total ms, rays/s and hit fraction per backend and size.
+    Render {
+        #[arg(long, default_value = DEFAULT_ASSET)]
+        asset: String,
+        /// Comma-separated sizes.
+        #[arg(long, default_value = "256x256,800x800,1920x1080")]
+        sizes: String,
+        /// Backends to compare side by side.
+        #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
+        backends: Vec<BackendChoice>,
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+        /// Camera distance from the object centre.
+        #[arg(long, default_value_t = 4.0)]
+        distance: f64,
+    },
+    /// Many users on one server (NEPHELE §6.2): 1, 2, 4, 8 real replay clients, each
+    /// replaying the orbit at its own phase, with batching on and off, per backend; plus
+    /// two clients sharing one view (history hits).
+    Users(super::users::UsersArgs),
+}
+
+/// Runs one `nephele bench` subcommand.
+pub fn run(what: BenchCommand) -> Result<()> {
+    match what {
+        BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms } => {
+            stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms)
+        }
+        BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu } => {
+            use super::tradeoff::{TradeoffOptions, format_report, run};
+            let size = parse_size(&size)?;
+            let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out, gpu })?;
+            print!("{}", format_report(&report));
+            Ok(())
+        }
+        BenchCommand::Encode { sizes, frames } => {
+            println!("| size | frames | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes |");
+            println!("|---|---:|---:|---:|---:|---:|---:|");
+            for size in sizes.split(',') {
+                let (w, h) = parse_size(size)?;
+                let r = crate::master::encoder::bench_encode(w, h, frames)?;
+                println!(
+                    "| {w}x{h} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} |",
+                    r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes
+                );
+            }
+            Ok(())
+        }
+        BenchCommand::Render { asset, sizes, backends, runs, distance } => {
+            let a = load_asset(&asset)?;
+            let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
+            let mut rows = Vec::new();
+            for b in backends {
+                let backend = make_backend(b)?;
+                eprintln!("benchmarking {} ...", backend.name());
+                rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance)?);
+            }
+            println!("asset: {asset}\n\n{}\nmemory:\n{}", format_table(&rows), a.memory());
+            Ok(())
+        }
+        BenchCommand::Users(args) => super::users::run(args),
+    }
+}
+
+fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u32, scales: &[String], budget_ms: f64) -> Result<()> {
+    let trace = load_trace(trace)?;
+    let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
+    let scales: Vec<(String, RenderScale)> =
+        scales.iter().map(|s| RenderScale::parse(s, budget_ms).map(|r| (s.clone(), r)).map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
+    let backend = make_backend(backend)?;
+    let settings = RenderSettings::default();
+    let catalog = Arc::new(Catalog::load(&[format!("bench={asset}")], backend.as_ref(), settings)?);
+    let rt = tokio::runtime::Runtime::new()?;
+    let mut reports = Vec::new();
+    for (label, scale) in &scales {
+        for &(width, height) in &sizes {
+            eprintln!("streaming {} at {width}x{height}, render scale {label} ...", trace.name);
+            let cfg = MasterConfig {
+                name: "bench".into(),
+                token: None,
+                rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
+                core: CoreConfig { render_scale: *scale, ..Default::default() },
+                workers: 1,
+            };
+            let catalog = Arc::clone(&catalog);
+            let report = rt.block_on(async {
+                let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+                let server = web::spawn_local(listener, Arc::clone(&catalog), cfg).await?;
+                let opts = replay::ReplayOptions {
+                    client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: true },
+                    anchor: None,
+                    quality_every: 10,
+                    save_dir: None,
+                    drain: std::time::Duration::from_secs(2),
+                };
+                let scene = &catalog.scenes["bench"];
+                replay::replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await
+            })?;
+            reports.push((label.clone(), report));
+        }
+    }
+    println!("asset {asset}, backend {}, trace {} ({} poses every {} ms), target {fps} fps, auto budget {budget_ms} ms\n", backend.name(), trace.name, trace.poses.len(), trace.period_ms);
+    println!("Per stage, p50 / p99 ms (master stages from frame info; end to end on the client clock):\n");
+    println!("| size | scale | queue | render | RGB→I420 | encode | RTP send | pose→frame info | pose→decoded |");
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|");
+    let pp = |p: replay::Percentiles| format!("{:.1} / {:.1}", p.p50, p.p99);
+    for (label, r) in &reports {
+        println!(
+            "| {}x{} | {label} | {} | {} | {} | {} | {} | {} | {} |",
+            r.width, r.height, pp(r.queue_ms), pp(r.render_ms), pp(r.convert_ms), pp(r.encode_ms), pp(r.send_ms), pp(r.info_latency_ms), pp(r.latency_ms)
+        );
+    }
+    println!("\n| size | scale | frames | fps | kbit/s | IDR | PSNR mean / min dB | bad frames |");
+    println!("|---|---|---:|---:|---:|---:|---:|---:|");
+    for (label, r) in &reports {
+        println!(
+            "| {}x{} | {label} | {} | {:.1} | {:.0} | {} | {:.2} / {:.2} | {} |",
+            r.width, r.height, r.frames_decoded, r.fps, r.bitrate_kbps, r.idr_frames,
+            r.mean_psnr().unwrap_or(f64::NAN), r.min_psnr().unwrap_or(f64::NAN), r.frames_unknown_pose + r.frames_without_pose
+        );
+    }
+    Ok(())
+}
+
+
+pub struct RenderBenchRow {
+    pub backend: String,
+    pub width: u32,
+    pub height: u32,
+    pub march_ms: f64,
+    pub shade_ms: f64,
+    pub total_ms: f64,
+    pub rays_per_s: f64,
+    pub hit_fraction: f64,
+}
+
+/// Median of `runs` renders of an orbit view at each size (after one warm-up).
+pub fn bench_render(
+    backend: &dyn Backend,
+    asset: std::sync::Arc<nephele_renderer::Asset>,
+    sizes: &[(u32, u32)],
+    runs: usize,
+    distance: f64,
+) -> Result<Vec<RenderBenchRow>> {
+    let prepared = backend.prepare(asset)?;
+    let settings = RenderSettings::default();
+    let mut rows = Vec::new();
+    for &(w, h) in sizes {
+        let view = View::orbit(DVec3::ZERO, distance, 35.0, 25.0, Intrinsics::from_fov_x(w, h, 0.69));
+        let req = [ViewRequest::new(view)];
+        prepared.render(&req, &settings)?;
+        let mut samples = Vec::new();
+        for _ in 0..runs.max(1) {
+            samples.push(prepared.render(&req, &settings)?.stats);
+        }
+        samples.sort_by(|a, b| a.total_ms.total_cmp(&b.total_ms));
+        let s = samples[samples.len() / 2];
+        rows.push(RenderBenchRow {
+            backend: backend.name(),
+            width: w,
+            height: h,
+            march_ms: s.march_ms,
+            shade_ms: s.shade_ms,
+            total_ms: s.total_ms,
+            rays_per_s: s.rays as f64 / (s.total_ms / 1e3),
+            hit_fraction: s.hits as f64 / s.rays.max(1) as f64,
+        });
+    }
+    Ok(rows)
+}
+
+pub fn format_table(rows: &[RenderBenchRow]) -> String {
+    let mut out = String::new();
+    let _ = writeln!(out, "| backend | size | ray-march ms | network ms | total ms | Mrays/s | hit fraction |");
+    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|");
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "| {} | {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} |",
+            r.backend,
+            r.width,
+            r.height,
+            r.march_ms,
+            r.shade_ms,
+            r.total_ms,
+            r.rays_per_s / 1e6,
+            r.hit_fraction
+        );
+    }
+    out
+}

@@ -1,0 +1,176 @@
+//! `nephele serve` (the main job: signaling, a master and the pages in one process),
+//! `nephele master` (a master registering with a separate signaling server) and
+//! `nephele signal` (signaling alone).
+
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use nephele_renderer::RenderSettings;
+
+use crate::{
+    assets::{BackendChoice, DEFAULT_SCENES, make_backend},
+    catalog::Catalog,
+    master::{
+        self, MasterConfig,
+        core::{Admission, CoreConfig, scheduler::RenderScale},
+        metrics::MasterMetrics,
+    },
+    web,
+    wire::media::RtcConfig,
+};
+
+/// What a master serves and how it schedules.
+#[derive(clap::Args, Debug, Clone)]
+pub struct MasterOptions {
+    /// Scenes to serve: `name=asset` or an asset (a .nolf path or builtin:<scene>[-small]);
+    /// repeat for several. The first is the default.
+    #[arg(long = "scene", default_values = DEFAULT_SCENES)]
+    pub scenes: Vec<String>,
+    #[arg(long, value_enum, default_value = "auto")]
+    pub backend: BackendChoice,
+    /// Step-size multiplier (speed/accuracy knob).
+    #[arg(long, default_value_t = 1.0)]
+    pub step_scale: f32,
+    /// Sessions this master accepts at once (a hard cap; admission by load comes first).
+    #[arg(long, default_value_t = 8)]
+    pub capacity: u32,
+    /// Shared token for signaling (clients must present it too).
+    #[arg(long)]
+    pub token: Option<String>,
+    /// Offer loopback ICE candidates only (a browser on this machine, tests).
+    #[arg(long)]
+    pub loopback_only: bool,
+    /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT).
+    #[arg(long)]
+    pub public_ip: Vec<String>,
+    /// Render at this fraction of the stream size and upscale (1 = exact), or `auto`:
+    /// dynamic resolution, lowered fairly across users so the farm keeps up, and so that one
+    /// frame renders in about --frame-budget-ms.
+    #[arg(long, default_value = "auto")]
+    pub render_scale: String,
+    /// Render-time target of `--render-scale auto`, ms.
+    #[arg(long, default_value_t = 30.0)]
+    pub frame_budget_ms: f64,
+    /// Batch the views of users of one scene into one render task per round (NEPHELE
+    /// §6.2.1); `false` renders each user's frame as its own task.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub batching: bool,
+    /// `load`: refuse joins while a user starves or when the measured farm could not serve
+    /// the newcomer at the lowest scale (NEPHELE Algorithm 1); `open`: admit up to
+    /// --capacity whatever the load (for benchmarks of overload).
+    #[arg(long, value_enum, default_value = "load")]
+    pub admission: Admission,
+    /// In-process render workers (threads sharing the backend).
+    #[arg(long, default_value_t = 1)]
+    pub workers: usize,
+}
+
+impl MasterOptions {
+    /// Loads the scenes on the chosen backend and builds the master's configuration.
+    pub fn load(&self, name: &str) -> Result<(Arc<Catalog>, MasterConfig)> {
+        let render_scale = RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?;
+        let backend = make_backend(self.backend)?;
+        let settings = RenderSettings { step_scale: self.step_scale, ..Default::default() };
+        settings.validate().map_err(anyhow::Error::msg)?;
+        eprintln!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name());
+        let catalog = Arc::new(Catalog::load(&self.scenes, backend.as_ref(), settings)?);
+        let cfg = MasterConfig {
+            name: name.into(),
+            token: self.token.clone(),
+            rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
+            core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching, admission: self.admission, ..Default::default() },
+            workers: self.workers,
+        };
+        Ok((catalog, cfg))
+    }
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct ServeArgs {
+    /// HTTP address for the pages and signaling; port 0 picks a free port.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub listen: String,
+    #[command(flatten)]
+    pub master: MasterOptions,
+}
+
+impl ServeArgs {
+    /// `nephele serve` with every default (what `nephele` alone runs).
+    pub fn default_args() -> Self {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Just {
+            #[command(flatten)]
+            serve: ServeArgs,
+        }
+        Just::parse_from(["nephele"]).serve
+    }
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct MasterArgs {
+    /// Signaling websocket, e.g. ws://host:8000/signal.
+    #[arg(long)]
+    pub signal: String,
+    /// Name shown in signaling's /status.
+    #[arg(long, default_value = "master")]
+    pub name: String,
+    /// Serve GET /metrics (Prometheus) on this address.
+    #[arg(long)]
+    pub metrics_listen: Option<String>,
+    #[command(flatten)]
+    pub master: MasterOptions,
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct SignalArgs {
+    /// Address to listen on; port 0 picks a free port (printed).
+    #[arg(long, default_value = "127.0.0.1:8000")]
+    pub listen: String,
+    /// Shared token that clients and masters must present.
+    #[arg(long)]
+    pub token: Option<String>,
+}
+
+pub fn serve(args: ServeArgs) -> Result<()> {
+    let (catalog, cfg) = args.master.load("local")?;
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
+        let names = catalog.names().join(", ");
+        let backend = catalog.backend_name.clone();
+        let server = web::spawn_local(listener, catalog, cfg).await?;
+        let addr = server.addr;
+        println!("Nephele is serving {names} on {backend} — open http://{addr}/ (AR: http://{addr}/ar.html, metrics: http://{addr}/metrics)");
+        tokio::signal::ctrl_c().await?;
+        eprintln!("stopping");
+        Ok(())
+    })
+}
+
+pub fn master(args: MasterArgs) -> Result<()> {
+    let (catalog, cfg) = args.master.load(&args.name)?;
+    let metrics = Arc::new(MasterMetrics::new());
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async move {
+        if let Some(listen) = &args.metrics_listen {
+            let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
+            println!("metrics on http://{}/metrics", listener.local_addr()?);
+            let m = Arc::clone(&metrics);
+            let app = axum::Router::new().route("/metrics", axum::routing::get(move || async move { m.encode() }));
+            tokio::spawn(async move { axum::serve(listener, app).await });
+        }
+        master::run(args.signal, cfg, catalog, metrics).await
+    })
+}
+
+pub fn signal(args: SignalArgs) -> Result<()> {
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
+        let addr = listener.local_addr()?;
+        println!("signaling on ws://{addr}/signal (status: http://{addr}/status)");
+        let cfg = nephele_signaling::HubConfig { token: args.token, ..Default::default() };
+        nephele_signaling::serve(listener, cfg).await.context("signaling server failed")
+    })
+}

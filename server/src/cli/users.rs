@@ -1,0 +1,273 @@
+//! `nephele bench users`: many users on one server (NEPHELE §6.2). For each backend, mode
+//! (`batched`: users of a scene share one render task per round; `per_user`: every user
+//! frame is its own task) and user count, a fresh in-process server and that many real
+//! replay clients (WebRTC, OpenH264 decode), each replaying the orbit from its own phase so
+//! that no two ask for the same view. Reports per-user achieved FPS, pose→decoded latency,
+//! render ms per user-frame, user-frames rendered per second and how many users are held at
+//! their FPS; then one run where two clients share a view, to show history hits.
+//!
+//! The server runs at a fixed render scale (default 1, so every mode renders the same
+//! pixels) with admission `open`: the point is the farm's throughput under overload, which
+//! admission by load would otherwise prevent.
+
+use std::{collections::BTreeMap, sync::Arc, time::Duration};
+
+use anyhow::{Context, Result, bail};
+use nephele_renderer::RenderSettings;
+use nephele_signaling::Mode;
+use serde::Serialize;
+
+use super::replay::load_trace;
+use crate::{
+    assets::{BackendChoice, DEFAULT_ASSET, make_backend, parse_size},
+    catalog::Catalog,
+    client::{
+        ClientOptions,
+        replay::{ReplayOptions, ReplayReport, Trace, replay},
+    },
+    master::{
+        MasterConfig,
+        core::{Admission, CoreConfig, scheduler::RenderScale},
+    },
+    web,
+    wire::media::RtcConfig,
+};
+
+/// A user counts as held when it gets at least this share of its target FPS.
+pub const HELD_SHARE: f64 = 0.96;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct UsersArgs {
+    #[arg(long, default_value = DEFAULT_ASSET)]
+    asset: String,
+    #[arg(long, default_value = "320x240")]
+    size: String,
+    /// Target FPS of every client.
+    #[arg(long, default_value_t = 25)]
+    fps: u32,
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
+    users: Vec<usize>,
+    #[arg(long, value_delimiter = ',', default_value = "cpu,gpu")]
+    backends: Vec<BackendChoice>,
+    /// Times each client replays the orbit (5 s each).
+    #[arg(long, default_value_t = 2)]
+    loops: usize,
+    /// Fixed render scale of every frame.
+    #[arg(long, default_value_t = 1.0)]
+    render_scale: f32,
+    /// Skip the shared-view run.
+    #[arg(long)]
+    no_shared: bool,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// One (backend, mode, user count) run.
+#[derive(Debug, Clone, Serialize)]
+pub struct UsersRun {
+    pub backend: String,
+    pub mode: String,
+    pub users: usize,
+    pub users_held: usize,
+    pub user_frames_per_s: f64,
+    pub fps_min: f64,
+    pub fps_mean: f64,
+    pub latency_p50_ms: f64,
+    pub latency_p99_ms: f64,
+    pub render_ms_per_user_frame: f64,
+    pub mean_batch_views: f64,
+    /// Longest gap between two decoded frames of any user, ms.
+    pub max_frame_gap_ms: f64,
+    pub reused_frames: usize,
+    /// Frames answering a pose the client never sent (must be 0).
+    pub frames_wrong_pose: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ModeSummary {
+    /// At the largest user count.
+    pub users: usize,
+    pub users_held: usize,
+    pub user_frames_per_s: f64,
+    pub runs: Vec<UsersRun>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct BackendReport {
+    pub batched: ModeSummary,
+    pub per_user: ModeSummary,
+    /// batched ÷ per_user user-frames per second at the largest user count.
+    pub speedup: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct UsersReport {
+    pub asset: String,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+    pub render_scale: f32,
+    pub backends: BTreeMap<String, BackendReport>,
+    /// Two clients replaying the same orbit from the same phase (batched, first backend).
+    pub shared_view: Option<UsersRun>,
+}
+
+pub fn run(args: UsersArgs) -> Result<()> {
+    let (width, height) = parse_size(&args.size)?;
+    let mut trace = load_trace("orbit")?;
+    let one_turn = trace.poses.clone();
+    for _ in 1..args.loops.max(1) {
+        trace.poses.extend_from_slice(&one_turn);
+    }
+    let scale = RenderScale::parse(&args.render_scale.to_string(), 30.0).map_err(anyhow::Error::msg)?;
+    let rt = tokio::runtime::Runtime::new()?;
+    let mut backends = BTreeMap::new();
+    let mut shared_view = None;
+    for &choice in &args.backends {
+        let backend = make_backend(choice)?;
+        let name = format!("{choice:?}").to_lowercase();
+        eprintln!("preparing {} on {} ...", args.asset, backend.name());
+        let catalog = Arc::new(Catalog::load(&[format!("bench={}", args.asset)], backend.as_ref(), RenderSettings::default())?);
+        let mut modes = Vec::new();
+        for batching in [true, false] {
+            let mode = if batching { "batched" } else { "per_user" };
+            let mut runs = Vec::new();
+            for &n in &args.users {
+                eprintln!("{name} {mode}: {n} users at {width}x{height}, {} fps ...", args.fps);
+                let phases: Vec<usize> = (0..n).map(|k| k * one_turn.len() / n.max(1)).collect();
+                let reports = rt.block_on(session_run(&catalog, batching, scale, &trace, &phases, width, height, args.fps))?;
+                runs.push(summarise(&name, mode, args.fps, &reports));
+            }
+            let last = runs.last().context("no user counts given")?.clone();
+            modes.push(ModeSummary { users: last.users, users_held: last.users_held, user_frames_per_s: last.user_frames_per_s, runs });
+        }
+        if !args.no_shared && shared_view.is_none() {
+            eprintln!("{name} batched: 2 users sharing one view ...");
+            let reports = rt.block_on(session_run(&catalog, true, scale, &trace, &[0, 0], width, height, args.fps))?;
+            shared_view = Some(summarise(&name, "shared_view", args.fps, &reports));
+        }
+        let per_user = modes.pop().expect("two modes");
+        let batched = modes.pop().expect("two modes");
+        let speedup = batched.user_frames_per_s / per_user.user_frames_per_s.max(1e-9);
+        backends.insert(name, BackendReport { batched, per_user, speedup });
+    }
+    let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale, backends, shared_view };
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", format_report(&report));
+    }
+    let wrong: usize = report.backends.values().flat_map(|b| b.batched.runs.iter().chain(&b.per_user.runs)).map(|r| r.frames_wrong_pose).sum();
+    if wrong > 0 {
+        bail!("{wrong} frames answered poses their client never sent");
+    }
+    Ok(())
+}
+
+/// One server, `phases.len()` clients replaying `trace` from those pose offsets, at once.
+#[allow(clippy::too_many_arguments)]
+async fn session_run(
+    catalog: &Arc<Catalog>,
+    batching: bool,
+    scale: RenderScale,
+    trace: &Trace,
+    phases: &[usize],
+    width: u32,
+    height: u32,
+    fps: u32,
+) -> Result<Vec<ReplayReport>> {
+    let cfg = MasterConfig {
+        name: "bench".into(),
+        token: None,
+        rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
+        core: CoreConfig { capacity: phases.len().max(1) as u32, render_scale: scale, batching, admission: Admission::Open, ..Default::default() },
+        workers: 1,
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
+    let mut tasks = Vec::new();
+    for &phase in phases {
+        let mut t = trace.clone();
+        let len = t.poses.len().max(1);
+        t.poses.rotate_left(phase % len);
+        let opts = ReplayOptions {
+            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: false },
+            anchor: None,
+            quality_every: 0,
+            save_dir: None,
+            drain: Duration::from_secs(1),
+        };
+        tasks.push(tokio::spawn(async move { replay(&t, &opts, None).await }));
+    }
+    let mut reports = Vec::new();
+    for t in tasks {
+        reports.push(t.await.context("a replay client panicked")??);
+    }
+    Ok(reports)
+}
+
+fn summarise(backend: &str, mode: &str, fps: u32, reports: &[ReplayReport]) -> UsersRun {
+    let n = reports.len().max(1) as f64;
+    let fps_each: Vec<f64> = reports.iter().map(|r| r.fps).collect();
+    let frames: usize = reports.iter().map(|r| r.frames_decoded - r.reused_frames.min(r.frames_decoded)).sum();
+    let per_frame: f64 = reports.iter().map(|r| r.render_ms_per_view * (r.frames_decoded - r.reused_frames.min(r.frames_decoded)) as f64).sum();
+    UsersRun {
+        backend: backend.into(),
+        mode: mode.into(),
+        users: reports.len(),
+        users_held: fps_each.iter().filter(|f| **f >= HELD_SHARE * f64::from(fps)).count(),
+        user_frames_per_s: fps_each.iter().sum(),
+        fps_min: fps_each.iter().copied().fold(f64::INFINITY, f64::min),
+        fps_mean: fps_each.iter().sum::<f64>() / n,
+        latency_p50_ms: reports.iter().map(|r| r.latency_ms.p50).sum::<f64>() / n,
+        latency_p99_ms: reports.iter().map(|r| r.latency_ms.p99).fold(0.0, f64::max),
+        render_ms_per_user_frame: if frames > 0 { per_frame / frames as f64 } else { 0.0 },
+        mean_batch_views: reports.iter().map(|r| r.mean_batch_views).sum::<f64>() / n,
+        max_frame_gap_ms: reports.iter().map(|r| r.frame_gap_ms.max).fold(0.0, f64::max),
+        reused_frames: reports.iter().map(|r| r.reused_frames).sum(),
+        frames_wrong_pose: reports.iter().map(|r| r.frames_unknown_pose + r.frames_without_pose).sum(),
+    }
+}
+
+pub fn format_report(r: &UsersReport) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "asset {}, {}x{}, target {} fps, render scale {}, admission open; held = at least {:.0}% of the target FPS\n",
+        r.asset,
+        r.width,
+        r.height,
+        r.fps,
+        r.render_scale,
+        100.0 * HELD_SHARE
+    );
+    let _ = writeln!(out, "| backend | mode | users | held | user-frames/s | fps min / mean | p50 / p99 ms | render ms per user-frame | views per task | max gap ms |");
+    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let row = |out: &mut String, u: &UsersRun| {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} | {} | {:.1} | {:.1} / {:.1} | {:.0} / {:.0} | {:.1} | {:.2} | {:.0} |",
+            u.backend, u.mode, u.users, u.users_held, u.user_frames_per_s, u.fps_min, u.fps_mean, u.latency_p50_ms, u.latency_p99_ms, u.render_ms_per_user_frame, u.mean_batch_views, u.max_frame_gap_ms
+        );
+    };
+    for b in r.backends.values() {
+        for u in b.batched.runs.iter().chain(&b.per_user.runs) {
+            row(&mut out, u);
+        }
+    }
+    let _ = writeln!(out);
+    for (name, b) in &r.backends {
+        let _ = writeln!(
+            out,
+            "{name}: batching raises user-frames/s {:.2}x at {} users ({:.1} vs {:.1})",
+            b.speedup, b.batched.users, b.batched.user_frames_per_s, b.per_user.user_frames_per_s
+        );
+    }
+    if let Some(s) = &r.shared_view {
+        let _ = writeln!(out, "\nshared view ({} batched, 2 users, same poses): {} of their frames were reused from the history table", s.backend, s.reused_frames);
+        row(&mut out, s);
+    }
+    out
+}

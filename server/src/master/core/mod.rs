@@ -1,0 +1,855 @@
+//! The master node's sans-IO core, in the style of str0m: every event goes in through
+//! [`MasterCore::handle_input`] with the time it happened, every action comes out of
+//! [`MasterCore::poll_output`]; no sockets, threads, clocks or GPUs inside, so tests drive it
+//! on simulated time. The edge ([`super::driver`]) owns the WebRTC peers, the signaling
+//! socket, the encoder threads and the render workers, and only carries out what the core
+//! says.
+//!
+//! The core owns:
+//! - **admission** of joins (limits, scenes, modes, session count, and NEPHELE's load rule:
+//!   no newcomer while a user starves, none that the measured farm could not serve at the
+//!   lowest render scale — [`scheduler`]);
+//! - **sessions**: each user's frame rules ([`session`]: validated poses, latest wins,
+//!   pacing at its FPS, IDR on connect/PLI/failure, refinement at rest), its connect
+//!   deadline and its Algorithm-1 clock;
+//! - **scheduling**: rounds of render tasks ([`task`]) — users of one scene batched into
+//!   one task per round, identical requests served once from the [`history`] table, tasks
+//!   classified heavy or light by a coarse proxy ([`estimate`]) and handed to workers with a
+//!   free slot; render scales lowered fairly before any frame rate falls;
+//! - **frame completion**: rendered views become encode jobs, sent frames become frame info
+//!   for the client, and the measurements feed the scheduler and [`MasterMetrics`].
+
+pub mod estimate;
+pub mod history;
+pub mod scheduler;
+pub mod session;
+pub mod task;
+
+use std::{
+    collections::{BTreeMap, HashMap, VecDeque},
+    sync::Arc,
+    time::{Duration, Instant},
+};
+
+use glam::Vec3;
+use nephele_renderer::Frame;
+use nephele_signaling::Mode;
+
+use self::{
+    estimate::{Proxy, classify, estimate},
+    history::{History, RequestKey},
+    scheduler::{Candidate, Demand, Ema, RenderScale, STARVED_GRACE, UserClock, fair_scale, fits, latency_scale, round_size, sort_candidates},
+    session::{FrameJob, Session},
+    task::{RenderTask, TaskId, TaskResult, TaskView, ViewTag, WorkerId},
+};
+use super::metrics::{MasterMetrics, SessionLabel};
+use crate::wire::{FrameTimes, ToViewer, media::background_of};
+
+/// A peer must connect within this time of its join.
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(30);
+/// Heartbeats to signaling carry the session count and free capacity this often.
+pub const HEARTBEAT_EVERY: Duration = Duration::from_secs(5);
+/// A camera that moved within this time counts as moving for the fair scale.
+pub const ACTIVE_WINDOW: Duration = Duration::from_secs(1);
+
+/// What the core knows of a scene (not its pixels: those live with the workers).
+#[derive(Debug, Clone)]
+pub struct SceneInfo {
+    pub name: String,
+    /// Centre and radius of the bounding sphere, scene units (identity instance).
+    pub center: Vec3,
+    pub radius: f32,
+    pub proxy: Proxy,
+}
+
+/// Whether joins are checked against the measured load.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Admission {
+    /// Refuse newcomers while a user starves or when the farm could not serve them (NEPHELE).
+    Load,
+    /// Admit up to the session capacity whatever the load (benchmarks of overload).
+    Open,
+}
+
+#[derive(Debug, Clone)]
+pub struct CoreConfig {
+    /// Most sessions at once.
+    pub capacity: u32,
+    pub render_scale: RenderScale,
+    /// Users of one scene share a task per round (off: one task per user frame).
+    pub batching: bool,
+    pub admission: Admission,
+    pub connect_timeout: Duration,
+    pub heartbeat_every: Duration,
+}
+
+impl Default for CoreConfig {
+    fn default() -> Self {
+        Self {
+            capacity: 4,
+            render_scale: RenderScale::Auto { budget_ms: 30.0, min: 0.25 },
+            batching: true,
+            admission: Admission::Load,
+            connect_timeout: CONNECT_TIMEOUT,
+            heartbeat_every: HEARTBEAT_EVERY,
+        }
+    }
+}
+
+/// A client signaling paired with this master.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JoinRequest {
+    pub session: String,
+    pub scene: String,
+    pub mode: Mode,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+}
+
+/// Everything that can happen to a master.
+#[derive(Debug, Clone)]
+pub enum Input {
+    Join(JoinRequest),
+    /// The client left through signaling.
+    Leave { session: String },
+    PeerConnected { session: String },
+    ChannelOpen { session: String },
+    Pose { session: String, bytes: bytes::Bytes },
+    /// A pose-channel message that is not a pose (text, oversized); `message` says why.
+    ChannelMisuse { session: String, message: String },
+    PictureLoss { session: String },
+    /// The peer connection failed or closed.
+    PeerClosed { session: String, reason: String },
+    RenderDone(TaskResult),
+    /// The frame's access unit went out on RTP.
+    FrameSent { session: String, frame: u64, times: FrameTimes },
+    FrameFailed { session: String, frame: u64, error: String },
+    /// A render worker can take tasks (`rays_per_s` from its calibration render).
+    WorkerUp { worker: WorkerId, rays_per_s: f64, slots: u32 },
+    WorkerDown { worker: WorkerId },
+    /// Signaling (re)accepted our registration: send a heartbeat at once.
+    SignalingUp,
+    /// Nothing happened; time passed.
+    Timeout,
+}
+
+/// Encode this rendered (or reused) view for a session.
+#[derive(Debug, Clone)]
+pub struct EncodeJob {
+    pub session: String,
+    pub frame: u64,
+    pub pose_seq: u32,
+    pub idr: bool,
+    /// At the render scale; the edge upscales to `width`×`height` if smaller.
+    pub pixels: Arc<Frame>,
+    pub width: u32,
+    pub height: u32,
+    /// When the frame started, for the encoder's timestamps.
+    pub started_at: Instant,
+}
+
+/// Everything the master can be asked to do.
+#[derive(Debug, Clone)]
+pub enum Output {
+    /// Set up a peer connection and an encoder for this session.
+    Accept(JoinRequest),
+    /// Tell signaling the join is refused (the client sees `reason`).
+    Reject { session: String, reason: String },
+    /// Tear the session down; `tell_signaling`: send `end` with the reason (not needed when
+    /// the client left through signaling).
+    Close { session: String, reason: String, tell_signaling: bool },
+    ToViewer { session: String, msg: ToViewer },
+    Render { worker: WorkerId, task: RenderTask },
+    /// Every user of this task is gone: drop it if not started.
+    Cancel { worker: WorkerId, task: TaskId },
+    Encode(EncodeJob),
+    Heartbeat { sessions: u32, free_rays_per_s: f64, saturated: bool },
+    /// Nothing to do before this time (or before the next input).
+    Timeout(Instant),
+}
+
+#[derive(Debug)]
+struct FrameInFlight {
+    job: FrameJob,
+    render_ms: f64,
+    batch_views: u32,
+    reused: bool,
+}
+
+#[derive(Debug)]
+struct User {
+    req: JoinRequest,
+    background: Vec3,
+    session: Session,
+    clock: UserClock,
+    joined_at: Instant,
+    connected: bool,
+    /// Tasks of this user on workers or queued.
+    loaded_tasks: u32,
+    /// Render scale of a moving camera (the scheduler's choice).
+    scale: f32,
+    /// The user's own last render, for a still camera.
+    last_frame: Option<(RequestKey, Arc<Frame>)>,
+    in_flight: Option<FrameInFlight>,
+    /// Currently counted as starved (for the starvation-event metric).
+    starved: bool,
+}
+
+impl User {
+    fn label(&self) -> SessionLabel {
+        SessionLabel { session: self.req.session.clone() }
+    }
+
+    fn pixels(&self) -> f64 {
+        f64::from(self.req.width) * f64::from(self.req.height)
+    }
+}
+
+#[derive(Debug)]
+struct Worker {
+    rays_per_s: Ema,
+    slots: u32,
+    in_flight: u32,
+}
+
+#[derive(Debug)]
+struct TaskInFlight {
+    worker: WorkerId,
+    /// Per view: its history key and who asked.
+    views: Vec<(RequestKey, Vec<ViewTag>)>,
+    rays: u64,
+}
+
+/// The master's state machine. See the module docs.
+pub struct MasterCore {
+    cfg: CoreConfig,
+    scenes: BTreeMap<String, SceneInfo>,
+    users: BTreeMap<String, User>,
+    workers: BTreeMap<WorkerId, Worker>,
+    /// Formed tasks waiting for a worker slot, with their history keys.
+    queue: VecDeque<(RenderTask, Vec<RequestKey>)>,
+    in_flight: HashMap<TaskId, TaskInFlight>,
+    history: History,
+    outputs: VecDeque<Output>,
+    next_task: u64,
+    next_heartbeat: Option<Instant>,
+    /// What the last heartbeat said about saturation.
+    saturated_said: bool,
+    now: Instant,
+    metrics: Arc<MasterMetrics>,
+}
+
+impl MasterCore {
+    pub fn new(cfg: CoreConfig, scenes: Vec<SceneInfo>, metrics: Arc<MasterMetrics>, now: Instant) -> Self {
+        Self {
+            cfg,
+            scenes: scenes.into_iter().map(|s| (s.name.clone(), s)).collect(),
+            users: BTreeMap::new(),
+            workers: BTreeMap::new(),
+            queue: VecDeque::new(),
+            in_flight: HashMap::new(),
+            history: History::default(),
+            outputs: VecDeque::new(),
+            next_task: 1,
+            next_heartbeat: None,
+            saturated_said: false,
+            now,
+            metrics,
+        }
+    }
+
+    pub fn config(&self) -> &CoreConfig {
+        &self.cfg
+    }
+
+    /// Scene names, sorted.
+    pub fn scene_names(&self) -> Vec<String> {
+        self.scenes.keys().cloned().collect()
+    }
+
+    pub fn user_count(&self) -> usize {
+        self.users.len()
+    }
+
+    /// The farm's measured throughput: the sum of the workers' rays per second.
+    pub fn farm_rays_per_s(&self) -> f64 {
+        self.workers.values().filter_map(|w| w.rays_per_s.get()).sum()
+    }
+
+    /// Frames served from the history table or a user's own last frame.
+    pub fn history_hits(&self) -> u64 {
+        self.history.hits
+    }
+
+    /// Achieved FPS and render scale of a user (tests, benchmarks).
+    pub fn user_stats(&self, session: &str) -> Option<(f64, f32)> {
+        self.users.get(session).map(|u| (u.clock.achieved_fps(), u.scale))
+    }
+
+    /// Feeds one event that happened at `now`.
+    pub fn handle_input(&mut self, now: Instant, input: Input) {
+        self.now = self.now.max(now);
+        let now = self.now;
+        match input {
+            Input::Join(req) => self.join(req, now),
+            Input::Leave { session } => self.drop_user(&session, "the client left", false),
+            Input::PeerConnected { session } => {
+                if let Some(u) = self.users.get_mut(&session) {
+                    u.connected = true;
+                    // Anything sent before the track was bound is lost: start with an IDR.
+                    u.session.on_picture_loss(now);
+                }
+            }
+            Input::ChannelOpen { session } => self.hello(&session),
+            Input::Pose { session, bytes } => self.pose(&session, &bytes, now),
+            Input::ChannelMisuse { session, message } => {
+                if self.users.contains_key(&session) {
+                    self.to_viewer(&session, ToViewer::Error { code: "bad_pose".into(), message });
+                }
+            }
+            Input::PictureLoss { session } => {
+                if let Some(u) = self.users.get_mut(&session) {
+                    u.session.on_picture_loss(now);
+                }
+            }
+            Input::PeerClosed { session, reason } => self.drop_user(&session, &reason, true),
+            Input::RenderDone(result) => self.render_done(result, now),
+            Input::FrameSent { session, frame, times } => self.frame_sent(&session, frame, times, now),
+            Input::FrameFailed { session, frame, error } => {
+                if let Some(u) = self.users.get_mut(&session)
+                    && u.in_flight.as_ref().is_some_and(|f| f.job.frame == frame)
+                {
+                    u.in_flight = None;
+                    u.session.frame_failed();
+                    self.metrics.frames_failed.inc();
+                    self.to_viewer(&session, ToViewer::Error { code: "frame_failed".into(), message: error });
+                }
+            }
+            Input::WorkerUp { worker, rays_per_s, slots } => {
+                let mut ema = Ema::new(0.2);
+                ema.observe(rays_per_s);
+                let w = self.workers.entry(worker).or_insert(Worker { rays_per_s: ema, slots: slots.max(1), in_flight: 0 });
+                w.slots = slots.max(1);
+                if w.rays_per_s.get().is_none() {
+                    w.rays_per_s = ema;
+                }
+                // Signaling should hear the new capacity now.
+                self.next_heartbeat = Some(now);
+            }
+            Input::WorkerDown { worker } => self.worker_down(&worker),
+            Input::SignalingUp => self.next_heartbeat = Some(now),
+            Input::Timeout => {}
+        }
+        self.tick(now);
+    }
+
+    /// The next thing to do; [`Output::Timeout`] when there is nothing until then.
+    pub fn poll_output(&mut self) -> Output {
+        if let Some(out) = self.outputs.pop_front() {
+            return out;
+        }
+        Output::Timeout(self.next_wakeup())
+    }
+
+    fn next_wakeup(&self) -> Instant {
+        let mut t = self.now + Duration::from_secs(1);
+        if let Some(h) = self.next_heartbeat {
+            t = t.min(h);
+        }
+        for u in self.users.values() {
+            if let Some(w) = u.session.next_wakeup() {
+                t = t.min(w);
+            }
+            if !u.connected {
+                t = t.min(u.joined_at + self.cfg.connect_timeout);
+            }
+        }
+        t.max(self.now)
+    }
+
+    fn to_viewer(&mut self, session: &str, msg: ToViewer) {
+        self.outputs.push_back(Output::ToViewer { session: session.into(), msg });
+    }
+
+    // ---- admission ----
+
+    fn join(&mut self, req: JoinRequest, now: Instant) {
+        match self.admit(&req, now) {
+            Err((reason_code, reason)) => {
+                tracing::info!(session = %req.session, reason_code, %reason, "join refused");
+                self.metrics.refuse(reason_code);
+                self.outputs.push_back(Output::Reject { session: req.session, reason });
+            }
+            Ok(()) => {
+                let refine = matches!(self.cfg.render_scale, RenderScale::Auto { .. });
+                let scale = match self.cfg.render_scale {
+                    RenderScale::Fixed(s) => s,
+                    RenderScale::Auto { min, .. } => self.initial_scale(&req, min),
+                };
+                let user = User {
+                    background: background_of(req.mode),
+                    session: Session::with_refinement(req.width, req.height, req.fps, refine),
+                    clock: UserClock::new(req.fps, now),
+                    joined_at: now,
+                    connected: false,
+                    loaded_tasks: 0,
+                    scale,
+                    last_frame: None,
+                    in_flight: None,
+                    starved: false,
+                    req: req.clone(),
+                };
+                self.metrics.target_fps.get_or_create(&user.label()).set(f64::from(req.fps));
+                self.metrics.render_scale.get_or_create(&user.label()).set(f64::from(scale));
+                tracing::info!(session = %req.session, scene = %req.scene, mode = ?req.mode, width = req.width, height = req.height, fps = req.fps, "session admitted");
+                self.users.insert(req.session.clone(), user);
+                self.metrics.users.set(self.users.len() as i64);
+                self.outputs.push_back(Output::Accept(req));
+            }
+        }
+    }
+
+    /// `Err((metric reason, words for the user))`.
+    fn admit(&self, req: &JoinRequest, now: Instant) -> Result<(), (&'static str, String)> {
+        if self.users.contains_key(&req.session) {
+            return Err(("duplicate", format!("session {} is already here", req.session)));
+        }
+        if !matches!(req.mode, Mode::Viewer | Mode::Ar) {
+            return Err(("mode", format!("mode {:?} is not served yet (viewer and ar are)", req.mode)));
+        }
+        nephele_limits::check_stream_size(req.width, req.height)
+            .and_then(|()| nephele_limits::check_fps(req.fps))
+            .map_err(|e| ("limits", e.to_string()))?;
+        if !self.scenes.contains_key(&req.scene) {
+            return Err(("scene", format!("unknown scene {:?}; this master has: {}", req.scene, self.scene_names().join(", "))));
+        }
+        if self.users.len() as u32 >= self.cfg.capacity {
+            return Err(("capacity", format!("this master serves at most {} sessions at once and all are taken", self.cfg.capacity)));
+        }
+        if self.cfg.admission == Admission::Open {
+            return Ok(());
+        }
+        let starving: Vec<&User> = self.users.values().filter(|u| self.is_starving(u, now)).collect();
+        if let Some(worst) = starving.iter().min_by(|a, b| a.clock.achieved_fps().total_cmp(&b.clock.achieved_fps())) {
+            return Err((
+                "saturated",
+                format!(
+                    "the render farm is saturated: {} of {} users are behind their frame rates (one gets {:.1} of its {} fps); try again shortly",
+                    starving.len(),
+                    self.users.len(),
+                    worst.clock.achieved_fps(),
+                    worst.req.fps
+                ),
+            ));
+        }
+        let rays = self.farm_rays_per_s();
+        // A lone user is always served as well as the farm can: refusing it helps nobody.
+        if rays > 0.0 && !self.users.is_empty() {
+            let floor = self.cfg.render_scale.floor();
+            let admitted: Vec<Demand> = self.users.values().map(|u| self.demand(u, now, true)).collect();
+            let newcomer = Demand { pixels: f64::from(req.width) * f64::from(req.height), fps: f64::from(req.fps), fixed_scale: self.fixed_scale(), active: true };
+            let (ok, need, free) = fits(&admitted, &newcomer, floor, rays);
+            if !ok {
+                return Err((
+                    "full",
+                    format!(
+                        "the render farm is full: this stream needs {:.2} M rays/s at its lowest render scale ({floor}) and {:.2} M rays/s are free; try a smaller size or frame rate",
+                        need / 1e6,
+                        free.max(0.0) / 1e6
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn fixed_scale(&self) -> Option<f32> {
+        match self.cfg.render_scale {
+            RenderScale::Fixed(s) => Some(s),
+            RenderScale::Auto { .. } => None,
+        }
+    }
+
+    /// What `u` asks of the farm; `admission`: count every user as moving.
+    fn demand(&self, u: &User, now: Instant, admission: bool) -> Demand {
+        let active = admission || u.session.moved_at().is_some_and(|t| now.saturating_duration_since(t) <= ACTIVE_WINDOW);
+        Demand { pixels: u.pixels(), fps: f64::from(u.req.fps), fixed_scale: self.fixed_scale(), active }
+    }
+
+    /// Starved beyond the grace: waiting for a frame, and late against its target time by
+    /// more than [`STARVED_GRACE`] of a period.
+    fn is_starving(&self, u: &User, now: Instant) -> bool {
+        u.session.wants_frame() && u.clock.lateness(now).as_secs_f64() > STARVED_GRACE * u.clock.period_s()
+    }
+
+    fn initial_scale(&self, req: &JoinRequest, min: f32) -> f32 {
+        let rays = self.farm_rays_per_s();
+        match self.cfg.render_scale {
+            RenderScale::Auto { budget_ms, .. } if rays > 0.0 => {
+                latency_scale(f64::from(req.width) * f64::from(req.height), rays, budget_ms, min).min(0.5f32.max(min))
+            }
+            _ => 0.5f32.max(min),
+        }
+    }
+
+    // ---- sessions ----
+
+    fn hello(&mut self, session: &str) {
+        let Some(u) = self.users.get(session) else { return };
+        let Some(scene) = self.scenes.get(&u.req.scene) else { return };
+        let msg = ToViewer::Session {
+            scene: scene.name.clone(),
+            mode: u.req.mode,
+            center: scene.center.to_array(),
+            radius: scene.radius,
+            up: [0.0, 0.0, 1.0],
+            width: u.req.width,
+            height: u.req.height,
+            fps: u.req.fps,
+        };
+        self.to_viewer(session, msg);
+    }
+
+    fn pose(&mut self, session: &str, bytes: &[u8], now: Instant) {
+        let Some(u) = self.users.get_mut(session) else { return };
+        let was_waiting = u.session.wants_frame() || u.in_flight.is_some();
+        match u.session.on_pose(bytes, now) {
+            Ok(true) if !was_waiting => u.clock.waiting_since = Some(now),
+            Ok(_) => {}
+            Err(e) => self.to_viewer(session, ToViewer::Error { code: "bad_pose".into(), message: e.to_string() }),
+        }
+    }
+
+    fn drop_user(&mut self, session: &str, reason: &str, tell_signaling: bool) {
+        let Some(u) = self.users.remove(session) else { return };
+        tracing::info!(session, reason, frames = u.clock.frames, "session ended");
+        self.metrics.forget_user(session);
+        self.metrics.users.set(self.users.len() as i64);
+        // Queued views of this user go; tasks left with nobody are dropped.
+        for (task, keys) in &mut self.queue {
+            let mut keep = Vec::new();
+            for (view, key) in task.views.drain(..).zip(keys.drain(..)) {
+                let mut view = view;
+                view.tags.retain(|t| t.session != session);
+                if !view.tags.is_empty() {
+                    keep.push((view, key));
+                }
+            }
+            (task.views, *keys) = keep.into_iter().unzip();
+        }
+        self.queue.retain(|(t, _)| !t.views.is_empty());
+        // Running tasks with nobody left are cancelled where the worker can still skip them.
+        let orphans: Vec<(TaskId, WorkerId)> = self
+            .in_flight
+            .iter()
+            .filter(|(_, t)| t.views.iter().flat_map(|(_, tags)| tags).all(|tag| tag.session == session || !self.users.contains_key(&tag.session)))
+            .map(|(id, t)| (*id, t.worker.clone()))
+            .collect();
+        for (task, worker) in orphans {
+            self.metrics.tasks_cancelled.inc();
+            self.outputs.push_back(Output::Cancel { worker, task });
+        }
+        self.outputs.push_back(Output::Close { session: session.into(), reason: reason.into(), tell_signaling });
+    }
+
+    // ---- scheduling ----
+
+    fn tick(&mut self, now: Instant) {
+        // Connect deadlines.
+        let late: Vec<String> =
+            self.users.values().filter(|u| !u.connected && now >= u.joined_at + self.cfg.connect_timeout).map(|u| u.req.session.clone()).collect();
+        for s in late {
+            let secs = self.cfg.connect_timeout.as_secs();
+            self.drop_user(&s, &format!("the peer did not connect within {secs} s"), true);
+        }
+        self.update_scales(now);
+        self.count_starvation(now);
+        self.schedule(now);
+        // With admission open the master takes joins whatever the load, so it never asks
+        // signaling to send them elsewhere.
+        let saturated = self.cfg.admission == Admission::Load && self.users.values().any(|u| self.is_starving(u, now));
+        // Signaling hears at once when the farm saturates or recovers.
+        if saturated != self.saturated_said {
+            self.next_heartbeat = Some(now);
+        }
+        if self.next_heartbeat.is_none_or(|t| now >= t) {
+            let free = self.free_rays_per_s(now);
+            self.saturated_said = saturated;
+            self.outputs.push_back(Output::Heartbeat { sessions: self.users.len() as u32, free_rays_per_s: free, saturated });
+            self.next_heartbeat = Some(now + self.cfg.heartbeat_every);
+        }
+        self.metrics.task_queue_depth.set(self.queue.len() as i64);
+        self.metrics.tasks_in_flight.set(self.in_flight.len() as i64);
+        self.metrics.farm_rays_per_s.set(self.farm_rays_per_s());
+    }
+
+    /// Rays per second left after every admitted user at its lowest scale.
+    fn free_rays_per_s(&self, now: Instant) -> f64 {
+        let floor = self.cfg.render_scale.floor();
+        let used: f64 = self.users.values().map(|u| self.demand(u, now, true)).map(|d| d.rays_per_s(d.fixed_scale.unwrap_or(floor))).sum();
+        (scheduler::TARGET_UTILISATION * self.farm_rays_per_s() - used).max(0.0)
+    }
+
+    fn count_starvation(&mut self, now: Instant) {
+        let starving: Vec<(String, bool)> = self.users.values().map(|u| (u.req.session.clone(), self.is_starving(u, now))).collect();
+        for (s, starving) in starving {
+            let u = self.users.get_mut(&s).expect("listed");
+            if starving && !u.starved {
+                self.metrics.starvation_events.inc();
+            }
+            u.starved = starving;
+        }
+    }
+
+    /// Dynamic resolution: one common scale for moving users (quality before FPS), capped
+    /// per user by the frame budget. Lowered at once, raised by at most one step per second
+    /// of calm, so that it settles.
+    fn update_scales(&mut self, now: Instant) {
+        let RenderScale::Auto { budget_ms, min } = self.cfg.render_scale else { return };
+        let rays = self.farm_rays_per_s();
+        if rays <= 0.0 {
+            return;
+        }
+        let demands: Vec<Demand> = self.users.values().map(|u| self.demand(u, now, false)).collect();
+        let common = fair_scale(&demands, rays, min);
+        for u in self.users.values_mut() {
+            let target = common.min(latency_scale(u.pixels(), rays, budget_ms, min));
+            if target < u.scale || target >= u.scale + 2.0 * scheduler::SCALE_STEP {
+                u.scale = if target < u.scale { target } else { (u.scale + scheduler::SCALE_STEP).min(target) };
+                self.metrics.render_scale.get_or_create(&u.label()).set(f64::from(u.scale));
+            }
+        }
+    }
+
+    fn free_worker(&self) -> Option<WorkerId> {
+        self.workers.iter().filter(|(_, w)| w.in_flight < w.slots).min_by_key(|(_, w)| w.in_flight).map(|(id, _)| id.clone())
+    }
+
+    fn schedule(&mut self, now: Instant) {
+        while let Some(worker) = self.free_worker() {
+            if self.queue.is_empty() && !self.plan_round(now) {
+                break;
+            }
+            let Some((task, keys)) = self.queue.pop_front() else { continue };
+            self.dispatch(worker, task, keys);
+        }
+    }
+
+    fn dispatch(&mut self, worker: WorkerId, task: RenderTask, keys: Vec<RequestKey>) {
+        let w = self.workers.get_mut(&worker).expect("a free worker");
+        w.in_flight += 1;
+        self.metrics.batch_views.observe(task.views.len() as f64);
+        self.metrics.batch_users.observe(task.users() as f64);
+        let views = keys.into_iter().zip(task.views.iter().map(|v| v.tags.clone())).collect();
+        self.in_flight.insert(task.id, TaskInFlight { worker: worker.clone(), views, rays: task.rays });
+        tracing::trace!(task = %task.id, views = task.views.len(), class = ?task.class, "dispatch");
+        self.outputs.push_back(Output::Render { worker, task });
+    }
+
+    /// Forms one round (Algorithm 1) into the queue. Returns whether anything was started.
+    fn plan_round(&mut self, now: Instant) -> bool {
+        let rays_per_s = self.farm_rays_per_s();
+        let mut candidates: Vec<Candidate> = self
+            .users
+            .values()
+            .filter(|u| u.connected && u.session.ready(now))
+            .map(|u| {
+                let scale = u.scale;
+                Candidate {
+                    session: u.req.session.clone(),
+                    starved: now > u.clock.target_time(),
+                    loaded_tasks: u.loaded_tasks,
+                    target_time: u.clock.target_time(),
+                    rays: (u.pixels() * f64::from(scale * scale)).ceil() as u64,
+                    fps: u.req.fps,
+                }
+            })
+            .collect();
+        if candidates.is_empty() {
+            return false;
+        }
+        sort_candidates(&mut candidates);
+        let n = round_size(&candidates, rays_per_s);
+        // Views to render, grouped into tasks by scene (batching) or by user.
+        let mut groups: BTreeMap<String, Vec<(TaskView, RequestKey)>> = BTreeMap::new();
+        for c in &candidates[..n] {
+            let u = self.users.get_mut(&c.session).expect("a candidate");
+            let Some(job) = u.session.poll_frame(now, u.scale) else { continue };
+            u.clock.waiting_since = None;
+            let mut view = job.pose.view;
+            if job.render_scale < 1.0 {
+                view.intrinsics = view.intrinsics.scaled(job.render_scale);
+            }
+            let key = RequestKey {
+                scene: u.req.scene.clone(),
+                intrinsics: view.intrinsics,
+                background: u.background,
+                instance: job.pose.instance,
+                world_from_camera: view.world_from_camera,
+            };
+            let own = u.last_frame.as_ref().filter(|(k, _)| job.same_as_previous && k.matches(&key)).map(|(_, f)| Arc::clone(f));
+            let reused = own.or_else(|| self.history.lookup(&key));
+            if let Some(pixels) = reused {
+                self.metrics.history_hits.inc();
+                u.in_flight = Some(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
+                let (w, h) = (u.req.width, u.req.height);
+                self.outputs.push_back(Output::Encode(EncodeJob {
+                    session: c.session.clone(),
+                    frame: job.frame,
+                    pose_seq: job.pose.seq,
+                    idr: job.idr,
+                    pixels,
+                    width: w,
+                    height: h,
+                    started_at: now,
+                }));
+                continue;
+            }
+            let tag = ViewTag { session: c.session.clone(), frame: job.frame };
+            // An identical view already on a worker or in the queue: ride along.
+            let riding = self.in_flight.values_mut().flat_map(|t| t.views.iter_mut()).find(|(k, _)| k.matches(&key)).map(|(_, tags)| tags).or_else(|| {
+                self.queue.iter_mut().flat_map(|(t, keys)| t.views.iter_mut().zip(keys.iter())).find(|(_, k)| k.matches(&key)).map(|(v, _)| &mut v.tags)
+            });
+            if let Some(tags) = riding {
+                tags.push(tag);
+                u.loaded_tasks += 1;
+                u.in_flight = Some(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
+                self.metrics.history_hits.inc();
+                self.history.hits += 1;
+                continue;
+            }
+            let group = if self.cfg.batching { u.req.scene.clone() } else { c.session.clone() };
+            let views = groups.entry(group).or_default();
+            // Identical requests in one round are rendered once.
+            let shared = views.iter_mut().find(|(_, k)| k.matches(&key));
+            u.in_flight = Some(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: shared.is_some() });
+            match shared {
+                Some((v, _)) => {
+                    v.tags.push(tag);
+                    self.metrics.history_hits.inc();
+                    self.history.hits += 1;
+                }
+                None => views.push((TaskView { view, instance: job.pose.instance, background: u.background, render_scale: job.render_scale, tags: vec![tag] }, key)),
+            }
+        }
+        let mut tasks: Vec<(RenderTask, Vec<RequestKey>)> = groups.into_values().map(|views| self.make_task(views)).collect();
+        // Shared tasks first, then heavy before light.
+        tasks.sort_by_key(|(t, _)| (std::cmp::Reverse(t.users().min(2)), t.class));
+        for (task, keys) in tasks {
+            for tag in task.views.iter().flat_map(|v| &v.tags) {
+                if let Some(u) = self.users.get_mut(&tag.session) {
+                    u.loaded_tasks += 1;
+                }
+            }
+            self.queue.push_back((task, keys));
+        }
+        true
+    }
+
+    fn make_task(&mut self, views: Vec<(TaskView, RequestKey)>) -> (RenderTask, Vec<RequestKey>) {
+        let scene_name = views[0].1.scene.clone();
+        let scene = &self.scenes[&scene_name];
+        let (mut est_pixels, mut min_depth, mut rays, mut radius) = (0u64, f64::INFINITY, 0u64, 0.0f64);
+        for (v, _) in &views {
+            let e = estimate(&scene.proxy, &v.view, &v.instance);
+            est_pixels += e.n_pixel;
+            min_depth = min_depth.min(e.avg_depth);
+            rays += v.view.intrinsics.pixel_count();
+            radius = radius.max(f64::from(scene.proxy.bound_radius) * v.instance.scale);
+        }
+        let class = classify(est_pixels, min_depth, radius);
+        let id = TaskId(self.next_task);
+        self.next_task += 1;
+        let (views, keys): (Vec<TaskView>, Vec<RequestKey>) = views.into_iter().unzip();
+        (RenderTask { id, scene: scene_name, views, class, rays, est_pixels }, keys)
+    }
+
+    // ---- results ----
+
+    fn render_done(&mut self, result: TaskResult, now: Instant) {
+        let Some(task) = self.in_flight.remove(&result.id) else {
+            tracing::debug!(task = %result.id, "result for a task that is not in flight (stale or re-issued); ignored");
+            return;
+        };
+        if let Some(w) = self.workers.get_mut(&task.worker) {
+            w.in_flight = w.in_flight.saturating_sub(1);
+            if result.frames.is_ok() && result.render_ms > 0.0 {
+                w.rays_per_s.observe(task.rays as f64 / (result.render_ms / 1e3));
+            }
+        }
+        self.metrics.render_ms.observe(result.render_ms);
+        let n_views = task.views.len();
+        let frames = match result.frames {
+            Ok(f) if f.len() == n_views => Ok(f),
+            Ok(f) => Err(format!("the worker answered {} views for a task of {n_views}", f.len())),
+            Err(e) => Err(e),
+        };
+        for (i, (key, tags)) in task.views.into_iter().enumerate() {
+            let frame = frames.as_ref().ok().map(|f| Arc::clone(&f[i]));
+            if let Some(f) = &frame {
+                self.history.insert(key.clone(), Arc::clone(f));
+            }
+            for tag in tags {
+                let Some(u) = self.users.get_mut(&tag.session) else { continue };
+                u.loaded_tasks = u.loaded_tasks.saturating_sub(1);
+                let Some(fl) = u.in_flight.as_mut().filter(|f| f.job.frame == tag.frame) else { continue };
+                match &frame {
+                    Some(pixels) => {
+                        fl.render_ms = result.render_ms;
+                        fl.batch_views = n_views as u32;
+                        u.last_frame = Some((key.clone(), Arc::clone(pixels)));
+                        let job = fl.job;
+                        self.outputs.push_back(Output::Encode(EncodeJob {
+                            session: tag.session.clone(),
+                            frame: job.frame,
+                            pose_seq: job.pose.seq,
+                            idr: job.idr,
+                            pixels: Arc::clone(pixels),
+                            width: u.req.width,
+                            height: u.req.height,
+                            started_at: job.started_at,
+                        }));
+                    }
+                    None => {
+                        u.in_flight = None;
+                        u.session.frame_failed();
+                        self.metrics.frames_failed.inc();
+                        let message = frames.as_ref().err().cloned().unwrap_or_default();
+                        tracing::warn!(session = %tag.session, frame = tag.frame, %message, "render failed");
+                        let msg = ToViewer::Error { code: "frame_failed".into(), message: format!("render: {message}") };
+                        self.outputs.push_back(Output::ToViewer { session: tag.session.clone(), msg });
+                    }
+                }
+            }
+        }
+        let _ = now;
+    }
+
+    fn frame_sent(&mut self, session: &str, frame: u64, mut times: FrameTimes, now: Instant) {
+        let Some(u) = self.users.get_mut(session) else { return };
+        let Some(fl) = u.in_flight.take_if(|f| f.job.frame == frame) else { return };
+        times.render_ms = fl.render_ms;
+        let job_s = now.saturating_duration_since(fl.job.started_at).as_secs_f64();
+        u.clock.frame_sent(now, job_s);
+        self.metrics.frames.inc();
+        self.metrics.encode_ms.observe(times.convert_ms + times.encode_ms);
+        self.metrics.achieved_fps.get_or_create(&u.label()).set(u.clock.achieved_fps());
+        if let Some(mut info) = u.session.frame_done(times) {
+            info.batch_views = fl.batch_views;
+            info.reused = fl.reused;
+            self.to_viewer(session, ToViewer::Frame(info));
+        }
+    }
+
+    fn worker_down(&mut self, worker: &WorkerId) {
+        self.workers.remove(worker);
+        let lost: Vec<TaskId> = self.in_flight.iter().filter(|(_, t)| &t.worker == worker).map(|(id, _)| *id).collect();
+        for id in lost {
+            self.render_done(TaskResult { id, frames: Err(format!("worker {} went away", worker.0)), render_ms: 0.0 }, self.now);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

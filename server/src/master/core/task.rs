@@ -1,0 +1,93 @@
+//! Render tasks (DESIGN §6): the unit of work the scheduler hands to a render worker. A task
+//! is one scene object and a list of views, each tagged with the user and frame it belongs
+//! to; a worker renders the whole list in one pass (one parallel pass on the CPU, one
+//! dispatch on the GPU) and answers with RGBA (alpha = object opacity) plus depth per view.
+//! One user's frame may need several tasks (later: one per object of a composed scene); one
+//! task may serve several users (shared tasks, §6.2.1).
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use nephele_renderer::{Frame, Instance, View, ViewRequest};
+
+/// Names a task for the life of a master.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct TaskId(pub u64);
+
+impl std::fmt::Display for TaskId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "t{}", self.0)
+    }
+}
+
+/// Names a render worker (in-process, or later a process reached over NATS).
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct WorkerId(pub String);
+
+/// Heavy tasks (many pixels, or a close object) and light ones ([`super::estimate`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum TaskClass {
+    Heavy,
+    Light,
+}
+
+/// The user frames one rendered view answers: usually one, several when identical
+/// requests of different users were merged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ViewTag {
+    pub session: String,
+    pub frame: u64,
+}
+
+/// One view of a task.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TaskView {
+    /// Camera with intrinsics already at the render scale.
+    pub view: View,
+    /// Where the object sits in the scene.
+    pub instance: Instance,
+    /// Linear RGB behind the object.
+    pub background: Vec3,
+    /// Fraction of the stream size this view is rendered at.
+    pub render_scale: f32,
+    /// Who asked for it.
+    pub tags: Vec<ViewTag>,
+}
+
+/// One scene object and the views to render of it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderTask {
+    pub id: TaskId,
+    pub scene: String,
+    pub views: Vec<TaskView>,
+    pub class: TaskClass,
+    /// Primary rays (pixels) of all views.
+    pub rays: u64,
+    /// Pixels the proxy expects the object to cover, all views.
+    pub est_pixels: u64,
+}
+
+impl RenderTask {
+    /// The views as the renderer takes them.
+    pub fn requests(&self) -> Vec<ViewRequest> {
+        self.views.iter().map(|v| ViewRequest { view: v.view, instance: v.instance, background: v.background }).collect()
+    }
+
+    /// Distinct users in this task.
+    pub fn users(&self) -> usize {
+        let mut sessions: Vec<&str> = self.views.iter().flat_map(|v| v.tags.iter().map(|t| t.session.as_str())).collect();
+        sessions.sort_unstable();
+        sessions.dedup();
+        sessions.len()
+    }
+}
+
+/// What a worker reports for a task.
+#[derive(Debug, Clone)]
+pub struct TaskResult {
+    pub id: TaskId,
+    /// One frame per view, in the task's order; or why the task failed.
+    pub frames: Result<Vec<Arc<Frame>>, String>,
+    /// Wall time the worker spent on the task, ms.
+    pub render_ms: f64,
+}

@@ -1,0 +1,18 @@
+//! The master node (DESIGN §5–6): pairs with clients through signaling, admits and
+//! schedules their frames, renders them on its workers, encodes and streams them.
+//!
+//! - [`core`]: the sans-IO heart — sessions, admission, NEPHELE's scheduler (Algorithm 1),
+//!   render tasks, the history table, frame rules; tested on simulated time.
+//! - the edge drivers around it: [`driver`] (the event loop and signaling link), [`peer`]
+//!   (one WebRTC connection per client), [`encoder`] (RGB → I420 → H.264 per session),
+//!   [`workers`] (in-process render threads);
+//! - [`metrics`]: what `GET /metrics` shows.
+
+pub mod core;
+pub mod driver;
+pub mod encoder;
+pub mod metrics;
+pub mod peer;
+pub mod workers;
+
+pub use driver::{MasterConfig, run};

@@ -1,0 +1,123 @@
+//! In-process render workers: OS threads that take [`RenderTask`]s from the core, render
+//! each whole task in one pass on the catalogue's backend (one parallel pass on the CPU, one
+//! dispatch on the GPU), and report the frames. Each worker first renders a calibration view
+//! of every scene so the scheduler starts from a measured throughput (rays per second) and
+//! refines it online. A panicking render ends that task with an error, never the worker; a
+//! task whose users all left is skipped if it has not started.
+
+use std::{
+    collections::HashSet,
+    panic::AssertUnwindSafe,
+    sync::{Arc, Mutex, mpsc},
+    time::Instant,
+};
+
+use nephele_renderer::{Intrinsics, View, ViewRequest};
+
+use super::core::task::{RenderTask, TaskId, TaskResult, WorkerId};
+use crate::catalog::Catalog;
+
+/// What a worker tells the driver.
+#[derive(Debug)]
+pub enum WorkerEvent {
+    Up { worker: WorkerId, rays_per_s: f64, slots: u32 },
+    Done(TaskResult),
+}
+
+/// Edge of the calibration view, pixels.
+const CALIBRATION_EDGE: u32 = 256;
+
+/// A pool of one or more render threads sharing the catalogue.
+pub struct LocalWorkers {
+    senders: Vec<(WorkerId, mpsc::Sender<RenderTask>)>,
+    cancelled: Arc<Mutex<HashSet<TaskId>>>,
+}
+
+impl LocalWorkers {
+    /// Starts `count` workers named `local-1`, `local-2`, …; events go to `report`.
+    pub fn spawn(catalog: Arc<Catalog>, count: usize, report: impl Fn(WorkerEvent) + Send + Clone + 'static) -> std::io::Result<Self> {
+        let cancelled = Arc::new(Mutex::new(HashSet::new()));
+        let mut senders = Vec::new();
+        for i in 1..=count.max(1) {
+            let id = WorkerId(format!("local-{i}"));
+            let (tx, rx) = mpsc::channel::<RenderTask>();
+            let (catalog, report, cancelled, name) = (Arc::clone(&catalog), report.clone(), Arc::clone(&cancelled), id.clone());
+            std::thread::Builder::new().name(id.0.clone()).spawn(move || worker_loop(name, &catalog, rx, &report, &cancelled))?;
+            senders.push((id, tx));
+        }
+        Ok(Self { senders, cancelled })
+    }
+
+    /// Queues a task on `worker`; returns it back if that worker is gone.
+    pub fn submit(&self, worker: &WorkerId, task: RenderTask) -> Result<(), RenderTask> {
+        match self.senders.iter().find(|(id, _)| id == worker) {
+            Some((_, tx)) => tx.send(task).map_err(|e| e.0),
+            None => Err(task),
+        }
+    }
+
+    /// Skip `task` if it has not started.
+    pub fn cancel(&self, task: TaskId) {
+        self.cancelled.lock().expect("cancel set").insert(task);
+    }
+}
+
+fn worker_loop(
+    id: WorkerId,
+    catalog: &Catalog,
+    tasks: mpsc::Receiver<RenderTask>,
+    report: &impl Fn(WorkerEvent),
+    cancelled: &Mutex<HashSet<TaskId>>,
+) {
+    let rays_per_s = calibrate(catalog);
+    tracing::info!(worker = %id.0, backend = %catalog.backend_name, rays_per_s, "render worker up");
+    report(WorkerEvent::Up { worker: id.clone(), rays_per_s, slots: 1 });
+    for task in tasks {
+        if cancelled.lock().expect("cancel set").remove(&task.id) {
+            report(WorkerEvent::Done(TaskResult { id: task.id, frames: Err("cancelled: every user of the task left".into()), render_ms: 0.0 }));
+            continue;
+        }
+        report(WorkerEvent::Done(render_task(catalog, &task)));
+    }
+}
+
+/// Renders a whole task in one call of the backend.
+pub fn render_task(catalog: &Catalog, task: &RenderTask) -> TaskResult {
+    let _span = tracing::debug_span!("render_task", task = %task.id, scene = %task.scene, views = task.views.len(), class = ?task.class).entered();
+    let started = Instant::now();
+    let frames = match catalog.scenes.get(&task.scene) {
+        None => Err(format!("this worker has no scene {:?}", task.scene)),
+        Some(scene) => {
+            let requests = task.requests();
+            match std::panic::catch_unwind(AssertUnwindSafe(|| scene.prepared.render(&requests, &catalog.settings))) {
+                Ok(Ok(out)) => Ok(out.frames.into_iter().map(Arc::new).collect()),
+                Ok(Err(e)) => Err(e.to_string()),
+                Err(_) => Err("the renderer panicked on this task".into()),
+            }
+        }
+    };
+    TaskResult { id: task.id, frames, render_ms: started.elapsed().as_secs_f64() * 1e3 }
+}
+
+/// Rays per second of one warm render of each scene from a typical viewpoint.
+fn calibrate(catalog: &Catalog) -> f64 {
+    let (mut rays, mut seconds) = (0.0, 0.0);
+    for scene in catalog.scenes.values() {
+        let k = Intrinsics::from_fov_x(CALIBRATION_EDGE, CALIBRATION_EDGE, 0.69);
+        let distance = 2.5 * f64::from(scene.info.radius.max(1e-3));
+        let view = View::orbit(scene.info.center.as_dvec3(), distance, 35.0, 25.0, k);
+        let request = [ViewRequest::new(view)];
+        for round in 0..2 {
+            let t = Instant::now();
+            if scene.prepared.render(&request, &catalog.settings).is_err() {
+                break;
+            }
+            if round == 1 {
+                seconds += t.elapsed().as_secs_f64();
+                rays += f64::from(CALIBRATION_EDGE * CALIBRATION_EDGE);
+            }
+        }
+    }
+    if seconds > 0.0 { rays / seconds } else { 0.0 }
+}
+

@@ -1,0 +1,94 @@
+//! The WebRTC conventions both ends of a stream share: the one video format (H.264
+//! constrained baseline `42e01f`, packetization mode 1, NACK/PLI/FIR feedback), how a
+//! `webrtc` API object is built with it, how a local ICE candidate is written as the
+//! `RTCIceCandidateInit` JSON that signaling relays, and the background colours of each mode.
+//! The master's peer and the headless client both build on this module and nothing else of
+//! each other.
+
+use std::{net::IpAddr, sync::Arc};
+
+use anyhow::{Context, Result};
+use glam::Vec3;
+use serde_json::Value;
+use webrtc::{
+    api::{
+        API, APIBuilder, interceptor_registry::register_default_interceptors, media_engine::MediaEngine,
+        setting_engine::SettingEngine,
+    },
+    ice_transport::ice_candidate::RTCIceCandidateInit,
+    interceptor::registry::Registry,
+    rtp_transceiver::{
+        RTCPFeedback,
+        rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType},
+    },
+};
+
+/// Background behind the object in viewer mode (linear RGB).
+pub const VIEWER_BACKGROUND: Vec3 = Vec3::ONE;
+/// AR mode renders over pure green, keyed out by the client.
+pub const AR_BACKGROUND: Vec3 = Vec3::new(0.0, 1.0, 0.0);
+
+/// The background a mode renders over.
+pub fn background_of(mode: nephele_signaling::Mode) -> Vec3 {
+    if mode == nephele_signaling::Mode::Ar { AR_BACKGROUND } else { VIEWER_BACKGROUND }
+}
+
+/// The only video format we send (and the only one the test client accepts).
+pub const H264_FMTP: &str = "level-asymmetry-allowed=1;packetization-mode=1;profile-level-id=42e01f";
+
+/// Network settings for every peer connection of a process.
+#[derive(Debug, Clone, Default)]
+pub struct RtcConfig {
+    /// Gather loopback candidates only (tests, a browser on the same machine).
+    pub loopback_only: bool,
+    /// Public addresses to advertise instead of the host's (server behind 1:1 NAT).
+    pub public_ips: Vec<String>,
+}
+
+/// Builds the `webrtc` API object shared by all peers of a process.
+pub fn build_api(cfg: &RtcConfig) -> Result<Arc<API>> {
+    let mut media = MediaEngine::default();
+    media.register_codec(h264_codec(), RTPCodecType::Video).context("registering H.264")?;
+    let mut registry = Registry::new();
+    // After register_codec: the interceptors add feedback only to codecs already registered.
+    registry = register_default_interceptors(registry, &mut media).context("registering interceptors")?;
+    let mut settings = SettingEngine::default();
+    settings.set_include_loopback_candidate(true);
+    if cfg.loopback_only {
+        settings.set_ip_filter(Box::new(|ip: IpAddr| ip.is_loopback()));
+    }
+    if !cfg.public_ips.is_empty() {
+        settings.set_nat_1to1_ips(cfg.public_ips.clone(), webrtc::ice_transport::ice_candidate_type::RTCIceCandidateType::Host);
+    }
+    Ok(Arc::new(
+        APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build(),
+    ))
+}
+
+/// A local candidate as the `RTCIceCandidateInit` JSON a browser accepts. Bundled: every
+/// candidate belongs to m-line 0; the crate's mid ("") matches no m-line in a browser, so
+/// the mid is left out.
+pub fn candidate_json(init: &RTCIceCandidateInit) -> Value {
+    serde_json::json!({
+        "candidate": init.candidate,
+        "sdpMid": null,
+        "sdpMLineIndex": init.sdp_mline_index.unwrap_or(0),
+    })
+}
+
+/// H.264 constrained baseline 3.1, packetization mode 1, NACK/PLI/FIR.
+pub fn h264_codec() -> RTCRtpCodecParameters {
+    let fb = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
+    RTCRtpCodecParameters {
+        capability: RTCRtpCodecCapability {
+            mime_type: webrtc::api::media_engine::MIME_TYPE_H264.into(),
+            clock_rate: 90_000,
+            channels: 0,
+            sdp_fmtp_line: H264_FMTP.into(),
+            rtcp_feedback: vec![fb("nack", ""), fb("nack", "pli"), fb("ccm", "fir")],
+        },
+        payload_type: 102,
+        ..Default::default()
+    }
+}
+
