@@ -213,10 +213,11 @@ fn wrong_sizes_are_errors_not_panics() {
         FrameEncoder::new(EncoderConfig::new(0, 240, 30)),
         Err(EncodeError::InvalidConfig(_))
     ));
-    assert!(matches!(
-        FrameEncoder::new(EncoderConfig::new(4000, 240, 30)),
-        Err(EncodeError::InvalidConfig(_))
-    ));
+    // The shared stream limits: 3840×2160 landscape, 2160×3840 portrait.
+    for (w, h) in [(3842, 240), (3840, 2162), (240, 3842), (2162, 2162)] {
+        let err = FrameEncoder::new(EncoderConfig::new(w, h, 30)).err().expect("refused");
+        assert!(err.to_string().contains("stream limits"), "{w}x{h}: {err}");
+    }
     assert!(matches!(
         FrameEncoder::new(EncoderConfig::new(320, 240, 0)),
         Err(EncodeError::InvalidConfig(_))
@@ -248,5 +249,18 @@ fn bench_encode_reports_numbers() {
             r.idr_bytes
         );
         assert!(r.bytes_per_frame > 0.0 && r.encode_ms_p50 > 0.0);
+    }
+}
+
+#[test]
+fn the_largest_stream_frames_encode() {
+    // At the edges of nephele_limits: OpenH264 takes 3840×2160 and 2160×3840, and nothing
+    // larger (so those are the limits).
+    for (w, h) in [(3840, 2160), (2160, 3840)] {
+        let mut rgba = Vec::new();
+        test_pattern(w, h, 0, &mut rgba);
+        let mut encoder = FrameEncoder::new(EncoderConfig::new(w, h, 30)).unwrap();
+        let frame = encoder.encode(&rgba, w, h, 7).unwrap();
+        assert!(frame.is_idr && parse_pose_seq(&frame.annex_b) == Some(7), "{w}x{h}");
     }
 }

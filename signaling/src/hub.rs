@@ -950,7 +950,7 @@ mod tests {
         hub.connect(ConnId(2), t0);
         let cases = [
             ("width", json!(0)),
-            ("width", json!(4097)),
+            ("width", json!(3841)),
             ("width", json!(7680)),
             ("height", json!(4321)),
             ("fps", json!(0)),
@@ -969,7 +969,7 @@ mod tests {
             );
         }
         let mut odd = join_json();
-        odd["width"] = json!(4096);
+        odd["width"] = json!(3840);
         odd["height"] = json!(1);
         odd["fps"] = json!(120);
         odd["scene"] = json!("A-z_9");

@@ -102,6 +102,10 @@ pub enum BenchCommand {
         /// Camera distance from the object centre.
         #[arg(long, default_value_t = 4.0)]
         distance: f64,
+        /// Also render this many views (around the orbit) in one call and one at a time, and
+        /// print ms per view of each: what batching a render task saves.
+        #[arg(long, default_value_t = 0)]
+        batch: usize,
     },
     /// Many users on one server (NEPHELE §6.2): 1, 2, 4, 8 real replay clients, each
     /// replaying the orbit at its own phase, with batching on and off, per backend; plus
@@ -135,16 +139,29 @@ pub fn run(what: BenchCommand) -> Result<()> {
             }
             Ok(())
         }
-        BenchCommand::Render { asset, sizes, backends, runs, distance } => {
+        BenchCommand::Render { asset, sizes, backends, runs, distance, batch } => {
             let a = load_asset(&asset)?;
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
             let mut rows = Vec::new();
+            let mut batches = Vec::new();
             for b in backends {
                 let backend = make_backend(b)?;
                 eprintln!("benchmarking {} ...", backend.name());
                 rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance)?);
+                if batch > 1 {
+                    batches.extend(bench_batch(backend.as_ref(), a.clone(), &sizes, runs, distance, batch)?);
+                }
             }
-            println!("asset: {asset}\n\n{}\nmemory:\n{}", format_table(&rows), a.memory());
+            println!("asset: {asset}\n\n{}", format_table(&rows));
+            if !batches.is_empty() {
+                println!("\n{batch} views around the orbit, median of {runs} runs:\n");
+                println!("| backend | size | one call ms per view | one view per call ms per view | batching speed-up |");
+                println!("|---|---|---:|---:|---:|");
+                for (backend, (w, h), together, alone) in &batches {
+                    println!("| {backend} | {w}×{h} | {together:.1} | {alone:.1} | {:.2}x |", alone / together);
+                }
+            }
+            println!("\nmemory:\n{}", a.memory());
             Ok(())
         }
         BenchCommand::Users(args) => super::users::run(args),
@@ -256,6 +273,43 @@ pub fn bench_render(
         });
     }
     Ok(rows)
+}
+
+/// ms per view rendering `n` orbit views in one call, and one per call (medians of `runs`).
+pub fn bench_batch(
+    backend: &dyn Backend,
+    asset: std::sync::Arc<nephele_renderer::Asset>,
+    sizes: &[(u32, u32)],
+    runs: usize,
+    distance: f64,
+    n: usize,
+) -> Result<Vec<(String, (u32, u32), f64, f64)>> {
+    let prepared = backend.prepare(asset)?;
+    let settings = RenderSettings::default();
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let mut out = Vec::new();
+    for &(w, h) in sizes {
+        let views: Vec<ViewRequest> = (0..n)
+            .map(|i| ViewRequest::new(View::orbit(DVec3::ZERO, distance, 35.0 + 360.0 * i as f64 / n as f64, 25.0, Intrinsics::from_fov_x(w, h, 0.69))))
+            .collect();
+        prepared.render(&views, &settings)?;
+        let (mut together, mut alone) = (Vec::new(), Vec::new());
+        for _ in 0..runs.max(1) {
+            let t = std::time::Instant::now();
+            prepared.render(&views, &settings)?;
+            together.push(t.elapsed().as_secs_f64() * 1e3 / n as f64);
+            let t = std::time::Instant::now();
+            for v in &views {
+                prepared.render(std::slice::from_ref(v), &settings)?;
+            }
+            alone.push(t.elapsed().as_secs_f64() * 1e3 / n as f64);
+        }
+        out.push((backend.name(), (w, h), median(together), median(alone)));
+    }
+    Ok(out)
 }
 
 pub fn format_table(rows: &[RenderBenchRow]) -> String {

@@ -6,9 +6,10 @@
 //! render ms per user-frame, user-frames rendered per second and how many users are held at
 //! their FPS; then one run where two clients share a view, to show history hits.
 //!
-//! The server runs at a fixed render scale (default 1, so every mode renders the same
-//! pixels) with admission `open`: the point is the farm's throughput under overload, which
-//! admission by load would otherwise prevent.
+//! The server runs with admission `open` (the point is the farm's throughput under
+//! overload, which admission by load would otherwise prevent) and, by default, the render
+//! scale users get from `nephele serve` (`auto`: lowered fairly under load, down to 0.25);
+//! `--render-scale 1` renders every frame at full size instead.
 
 use std::{collections::BTreeMap, sync::Arc, time::Duration};
 
@@ -52,9 +53,12 @@ pub struct UsersArgs {
     /// Times each client replays the orbit (5 s each).
     #[arg(long, default_value_t = 2)]
     loops: usize,
-    /// Fixed render scale of every frame.
-    #[arg(long, default_value_t = 1.0)]
-    render_scale: f32,
+    /// `auto` (dynamic resolution, as served by default) or a fixed scale in 0.05..=1.
+    #[arg(long, default_value = "auto")]
+    render_scale: String,
+    /// Render-time target of `--render-scale auto`, ms.
+    #[arg(long, default_value_t = 30.0)]
+    frame_budget_ms: f64,
     /// Skip the shared-view run.
     #[arg(long)]
     no_shared: bool,
@@ -77,6 +81,7 @@ pub struct UsersRun {
     pub latency_p99_ms: f64,
     pub render_ms_per_user_frame: f64,
     pub mean_batch_views: f64,
+    pub mean_render_scale: f64,
     /// Longest gap between two decoded frames of any user, ms.
     pub max_frame_gap_ms: f64,
     pub reused_frames: usize,
@@ -107,7 +112,7 @@ pub struct UsersReport {
     pub width: u32,
     pub height: u32,
     pub fps: u32,
-    pub render_scale: f32,
+    pub render_scale: String,
     pub backends: BTreeMap<String, BackendReport>,
     /// Two clients replaying the same orbit from the same phase (batched, first backend).
     pub shared_view: Option<UsersRun>,
@@ -120,7 +125,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
     for _ in 1..args.loops.max(1) {
         trace.poses.extend_from_slice(&one_turn);
     }
-    let scale = RenderScale::parse(&args.render_scale.to_string(), 30.0).map_err(anyhow::Error::msg)?;
+    let scale = RenderScale::parse(&args.render_scale, args.frame_budget_ms).map_err(anyhow::Error::msg)?;
     let rt = tokio::runtime::Runtime::new()?;
     let mut backends = BTreeMap::new();
     let mut shared_view = None;
@@ -152,7 +157,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
         let speedup = batched.user_frames_per_s / per_user.user_frames_per_s.max(1e-9);
         backends.insert(name, BackendReport { batched, per_user, speedup });
     }
-    let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale, backends, shared_view };
+    let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale.clone(), backends, shared_view };
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -224,6 +229,7 @@ fn summarise(backend: &str, mode: &str, fps: u32, reports: &[ReplayReport]) -> U
         latency_p99_ms: reports.iter().map(|r| r.latency_ms.p99).fold(0.0, f64::max),
         render_ms_per_user_frame: if frames > 0 { per_frame / frames as f64 } else { 0.0 },
         mean_batch_views: reports.iter().map(|r| r.mean_batch_views).sum::<f64>() / n,
+        mean_render_scale: reports.iter().map(|r| r.mean_render_scale).sum::<f64>() / n,
         max_frame_gap_ms: reports.iter().map(|r| r.frame_gap_ms.max).fold(0.0, f64::max),
         reused_frames: reports.iter().map(|r| r.reused_frames).sum(),
         frames_wrong_pose: reports.iter().map(|r| r.frames_unknown_pose + r.frames_without_pose).sum(),
@@ -243,13 +249,13 @@ pub fn format_report(r: &UsersReport) -> String {
         r.render_scale,
         100.0 * HELD_SHARE
     );
-    let _ = writeln!(out, "| backend | mode | users | held | user-frames/s | fps min / mean | p50 / p99 ms | render ms per user-frame | views per task | max gap ms |");
-    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(out, "| backend | mode | users | held | user-frames/s | fps min / mean | p50 / p99 ms | render ms per user-frame | views per task | render scale | max gap ms |");
+    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let row = |out: &mut String, u: &UsersRun| {
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} | {:.1} | {:.1} / {:.1} | {:.0} / {:.0} | {:.1} | {:.2} | {:.0} |",
-            u.backend, u.mode, u.users, u.users_held, u.user_frames_per_s, u.fps_min, u.fps_mean, u.latency_p50_ms, u.latency_p99_ms, u.render_ms_per_user_frame, u.mean_batch_views, u.max_frame_gap_ms
+            "| {} | {} | {} | {} | {:.1} | {:.1} / {:.1} | {:.0} / {:.0} | {:.1} | {:.2} | {:.2} | {:.0} |",
+            u.backend, u.mode, u.users, u.users_held, u.user_frames_per_s, u.fps_min, u.fps_mean, u.latency_p50_ms, u.latency_p99_ms, u.render_ms_per_user_frame, u.mean_batch_views, u.mean_render_scale, u.max_frame_gap_ms
         );
     };
     for b in r.backends.values() {

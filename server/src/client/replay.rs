@@ -171,6 +171,8 @@ pub struct ReplayReport {
     pub mean_batch_views: f64,
     /// Frames the master reused instead of rendering (a still camera, the history table).
     pub reused_frames: usize,
+    /// Mean render scale of the frames (1 = full size).
+    pub mean_render_scale: f64,
     pub quality: Vec<QualitySample>,
     /// Errors the master sent on the pose channel.
     pub errors: Vec<String>,
@@ -344,6 +346,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
         render_ms_per_view: mean(rendered.iter().map(|i| i.times.render_ms / f64::from(i.batch_views.max(1)))),
         mean_batch_views: mean(rendered.iter().map(|i| f64::from(i.batch_views))),
         reused_frames: infos.iter().filter(|(i, _)| i.reused).count(),
+        mean_render_scale: mean(infos.iter().map(|(i, _)| f64::from(i.render_scale))),
         quality,
         errors,
     })

@@ -8,7 +8,7 @@
 //! - a **peer task** per session owns its WebRTC connection ([`super::peer`]): answers the
 //!   offer, trickles ICE, sends video samples and pose-channel text in order;
 //! - **encoder threads**: each session's OpenH264 encoder runs on the blocking pool, one frame
-//!   at a time (the core never has two frames of a session in flight);
+//!   at a time and in order (a frame rendered while the previous one encodes waits its turn);
 //! - **render workers** ([`super::workers`]) render tasks on their own threads.
 
 use std::{
@@ -80,6 +80,8 @@ struct SessionEdge {
     commands: mpsc::UnboundedSender<PeerCommand>,
     /// Home when no frame of this session is encoding.
     encoder: Option<FrameEncoder>,
+    /// Frames waiting for the encoder, in order.
+    waiting: std::collections::VecDeque<EncodeJob>,
     started: Instant,
     last_sent: Option<Instant>,
     fps: u32,
@@ -118,7 +120,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
                 let Some(ev) = ev else { bail!("the master's event channel closed") };
                 let input = match ev {
                     Event::Fatal(why) => bail!("{why}"),
-                    other => translate(other, &mut sessions),
+                    other => translate(other, &mut sessions, &events_tx),
                 };
                 if let Some(input) = input {
                     core.handle_input(Instant::now(), input);
@@ -130,7 +132,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
 }
 
 /// An event as the core's input (or handled here: encoded frames go on to the peer).
-fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>) -> Option<Input> {
+fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mpsc::UnboundedSender<Event>) -> Option<Input> {
     match ev {
         Event::Fatal(_) => None,
         Event::Signal(msg) => match msg {
@@ -173,6 +175,7 @@ fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>) -> Option<I
         Event::Encoded { session, frame, encoder, result } => {
             let edge = sessions.get_mut(&session)?;
             edge.encoder = Some(encoder);
+            next_encode(edge, events);
             match result {
                 Ok((access_unit, times)) => {
                     let now = Instant::now();
@@ -216,7 +219,7 @@ fn execute(
             Err(e) => inputs.push(Input::PeerClosed { session: req.session, reason: format!("cannot create the encoder: {e}") }),
             Ok(encoder) => {
                 let (tx, rx) = mpsc::unbounded_channel();
-                let edge = SessionEdge { commands: tx, encoder: Some(encoder), started: Instant::now(), last_sent: None, fps: req.fps };
+                let edge = SessionEdge { commands: tx, encoder: Some(encoder), waiting: Default::default(), started: Instant::now(), last_sent: None, fps: req.fps };
                 sessions.insert(req.session.clone(), edge);
                 tokio::spawn(peer_task(req.session, Arc::clone(api), rx, events.clone(), to_signal.clone()));
             }
@@ -242,22 +245,29 @@ fn execute(
         Output::Cancel { task, .. } => workers.cancel(task),
         Output::Encode(job) => {
             let Some(edge) = sessions.get_mut(&job.session) else { return };
-            let Some(encoder) = edge.encoder.take() else {
-                inputs.push(Input::FrameFailed { session: job.session, frame: job.frame, error: "the encoder is busy (internal error)".into() });
-                return;
-            };
-            let (events, started) = (events.clone(), edge.started);
-            tokio::task::spawn_blocking(move || {
-                let (session, frame) = (job.session.clone(), job.frame);
-                let (encoder, result) = encode(encoder, &job, started);
-                let _ = events.send(Event::Encoded { session, frame, encoder, result });
-            });
+            edge.waiting.push_back(job);
+            next_encode(edge, events);
         }
         Output::Heartbeat { sessions: count, free_rays_per_s, saturated } => {
             let _ = to_signal.send(ToSignal::Heartbeat { sessions: count, free_rays_per_s, saturated });
         }
         Output::Timeout(_) => {}
     }
+}
+
+/// Starts the session's next waiting frame if its encoder is home.
+fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>) {
+    if edge.encoder.is_none() {
+        return;
+    }
+    let Some(job) = edge.waiting.pop_front() else { return };
+    let encoder = edge.encoder.take().expect("checked");
+    let (events, started) = (events.clone(), edge.started);
+    tokio::task::spawn_blocking(move || {
+        let (session, frame) = (job.session.clone(), job.frame);
+        let (encoder, result) = encode(encoder, &job, started);
+        let _ = events.send(Event::Encoded { session, frame, encoder, result });
+    });
 }
 
 /// Blocking: upscale to the stream size if needed, convert and encode.

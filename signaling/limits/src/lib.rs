@@ -4,16 +4,18 @@
 //! from here. No dependencies, so every crate (renderer, signaling, server) can use it.
 //!
 //! Two frame limits, on purpose:
-//! - a **stream** frame is what one H.264 picture can carry: constrained baseline at level
-//!   5.1 allows 36 864 macroblocks per frame, so 3840×2160 (32 400) fits and 4096 per edge is
-//!   the most either side may be;
+//! - a **stream** frame is what our H.264 encoder takes in one picture: OpenH264 encodes at
+//!   most 3840×2160 landscape or 2160×3840 portrait (checked in `server/tests/encode.rs`),
+//!   within H.264 level 5.1's 36 864 macroblocks per frame;
 //! - a **render** image (offline `nephele render`, benchmarks, a tile of a quilt) can be
 //!   larger: 8K UHD, 8192 per edge, which also bounds the GPU's per-dispatch buffers.
 
-/// Largest streamed frame, in pixels (3840×2160; H.264 level 5.1 holds 36 864 macroblocks).
-pub const MAX_STREAM_PIXELS: u64 = 3840 * 2160;
-/// Largest edge of a streamed frame, in pixels.
-pub const MAX_STREAM_EDGE_PX: u32 = 4096;
+/// Longest edge of a streamed frame, in pixels.
+pub const MAX_STREAM_LONG_EDGE_PX: u32 = 3840;
+/// Shortest edge of a streamed frame may be at most this, in pixels.
+pub const MAX_STREAM_SHORT_EDGE_PX: u32 = 2160;
+/// Largest streamed frame, in pixels (3840×2160).
+pub const MAX_STREAM_PIXELS: u64 = MAX_STREAM_LONG_EDGE_PX as u64 * MAX_STREAM_SHORT_EDGE_PX as u64;
 
 /// Largest rendered image, in pixels (8K UHD).
 pub const MAX_RENDER_PIXELS: u64 = 7680 * 4320;
@@ -41,8 +43,8 @@ impl std::fmt::Display for LimitError {
         match *self {
             Self::StreamSize { width, height } => write!(
                 f,
-                "frame size {width}x{height} is outside the stream limits: 1..={MAX_STREAM_EDGE_PX} pixels per edge and at most \
-                 {MAX_STREAM_PIXELS} pixels (3840x2160)"
+                "frame size {width}x{height} is outside the stream limits: at least 1x1, at most \
+                 {MAX_STREAM_LONG_EDGE_PX}x{MAX_STREAM_SHORT_EDGE_PX} (or {MAX_STREAM_SHORT_EDGE_PX}x{MAX_STREAM_LONG_EDGE_PX} portrait)"
             ),
             Self::Fps { fps } => write!(f, "fps {fps} is outside {MIN_FPS}..={MAX_FPS}"),
         }
@@ -51,10 +53,11 @@ impl std::fmt::Display for LimitError {
 
 impl std::error::Error for LimitError {}
 
-/// Checks a streamed frame size against [`MAX_STREAM_EDGE_PX`] and [`MAX_STREAM_PIXELS`].
+/// Checks a streamed frame size: both edges at least 1, the long one at most
+/// [`MAX_STREAM_LONG_EDGE_PX`], the short one at most [`MAX_STREAM_SHORT_EDGE_PX`].
 pub fn check_stream_size(width: u32, height: u32) -> Result<(), LimitError> {
-    let edge_ok = (1..=MAX_STREAM_EDGE_PX).contains(&width) && (1..=MAX_STREAM_EDGE_PX).contains(&height);
-    if edge_ok && u64::from(width) * u64::from(height) <= MAX_STREAM_PIXELS {
+    let (long, short) = (width.max(height), width.min(height));
+    if short >= 1 && long <= MAX_STREAM_LONG_EDGE_PX && short <= MAX_STREAM_SHORT_EDGE_PX {
         Ok(())
     } else {
         Err(LimitError::StreamSize { width, height })
@@ -81,11 +84,11 @@ mod tests {
     fn stream_limits_hold_at_their_edges() {
         assert!(check_stream_size(3840, 2160).is_ok());
         assert!(check_stream_size(2160, 3840).is_ok());
-        assert!(check_stream_size(4096, 2025).is_ok());
+        assert!(check_stream_size(3840, 1).is_ok());
         assert!(check_stream_size(1, 1).is_ok());
-        for (w, h) in [(0, 1), (1, 0), (4097, 1), (7680, 1080), (3840, 2161), (u32::MAX, u32::MAX)] {
+        for (w, h) in [(0, 1), (1, 0), (3841, 1), (7680, 1080), (3840, 2161), (2161, 2161), (u32::MAX, u32::MAX)] {
             let e = check_stream_size(w, h).unwrap_err();
-            assert!(e.to_string().contains(&format!("{w}x{h}")) && e.to_string().contains("4096"), "{e}");
+            assert!(e.to_string().contains(&format!("{w}x{h}")) && e.to_string().contains("3840x2160"), "{e}");
         }
         assert!(check_fps(1).is_ok() && check_fps(120).is_ok());
         assert!(check_fps(0).is_err() && check_fps(1_000_000).unwrap_err().to_string().contains("1..=120"));

@@ -191,7 +191,8 @@ struct User {
     scale: f32,
     /// The user's own last render, for a still camera.
     last_frame: Option<(RequestKey, Arc<Frame>)>,
-    in_flight: Option<FrameInFlight>,
+    /// Frames started and not yet sent (at most two: one rendering, one encoding).
+    frames: VecDeque<FrameInFlight>,
     /// Currently counted as starved (for the starvation-event metric).
     starved: bool,
 }
@@ -318,10 +319,10 @@ impl MasterCore {
             Input::FrameSent { session, frame, times } => self.frame_sent(&session, frame, times, now),
             Input::FrameFailed { session, frame, error } => {
                 if let Some(u) = self.users.get_mut(&session)
-                    && u.in_flight.as_ref().is_some_and(|f| f.job.frame == frame)
+                    && let Some(i) = u.frames.iter().position(|f| f.job.frame == frame)
                 {
-                    u.in_flight = None;
-                    u.session.frame_failed();
+                    u.frames.remove(i);
+                    u.session.frame_failed(frame);
                     self.metrics.frames_failed.inc();
                     self.to_viewer(&session, ToViewer::Error { code: "frame_failed".into(), message: error });
                 }
@@ -352,17 +353,22 @@ impl MasterCore {
         Output::Timeout(self.next_wakeup())
     }
 
+    /// The next time something is due without any input: a heartbeat, a connect deadline,
+    /// or a frame slot opening while a worker is free (a user ready now but waiting for a
+    /// worker needs no timer: the worker's result wakes the core).
     fn next_wakeup(&self) -> Instant {
         let mut t = self.now + Duration::from_secs(1);
         if let Some(h) = self.next_heartbeat {
             t = t.min(h);
         }
+        let worker_free = self.free_worker().is_some() && self.queue.is_empty();
         for u in self.users.values() {
-            if let Some(w) = u.session.next_wakeup() {
-                t = t.min(w);
-            }
             if !u.connected {
                 t = t.min(u.joined_at + self.cfg.connect_timeout);
+            } else if worker_free
+                && let Some(w) = u.session.next_wakeup().filter(|w| *w > self.now)
+            {
+                t = t.min(w);
             }
         }
         t.max(self.now)
@@ -396,7 +402,7 @@ impl MasterCore {
                     loaded_tasks: 0,
                     scale,
                     last_frame: None,
-                    in_flight: None,
+                    frames: VecDeque::new(),
                     starved: false,
                     req: req.clone(),
                 };
@@ -513,7 +519,7 @@ impl MasterCore {
 
     fn pose(&mut self, session: &str, bytes: &[u8], now: Instant) {
         let Some(u) = self.users.get_mut(session) else { return };
-        let was_waiting = u.session.wants_frame() || u.in_flight.is_some();
+        let was_waiting = u.session.wants_frame() || !u.frames.is_empty();
         match u.session.on_pose(bytes, now) {
             Ok(true) if !was_waiting => u.clock.waiting_since = Some(now),
             Ok(_) => {}
@@ -692,7 +698,8 @@ impl MasterCore {
             let reused = own.or_else(|| self.history.lookup(&key));
             if let Some(pixels) = reused {
                 self.metrics.history_hits.inc();
-                u.in_flight = Some(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
+                u.frames.push_back(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
+                u.session.rendered(job.frame);
                 let (w, h) = (u.req.width, u.req.height);
                 self.outputs.push_back(Output::Encode(EncodeJob {
                     session: c.session.clone(),
@@ -714,7 +721,7 @@ impl MasterCore {
             if let Some(tags) = riding {
                 tags.push(tag);
                 u.loaded_tasks += 1;
-                u.in_flight = Some(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
+                u.frames.push_back(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
                 self.metrics.history_hits.inc();
                 self.history.hits += 1;
                 continue;
@@ -723,7 +730,7 @@ impl MasterCore {
             let views = groups.entry(group).or_default();
             // Identical requests in one round are rendered once.
             let shared = views.iter_mut().find(|(_, k)| k.matches(&key));
-            u.in_flight = Some(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: shared.is_some() });
+            u.frames.push_back(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: shared.is_some() });
             match shared {
                 Some((v, _)) => {
                     v.tags.push(tag);
@@ -793,13 +800,15 @@ impl MasterCore {
             for tag in tags {
                 let Some(u) = self.users.get_mut(&tag.session) else { continue };
                 u.loaded_tasks = u.loaded_tasks.saturating_sub(1);
-                let Some(fl) = u.in_flight.as_mut().filter(|f| f.job.frame == tag.frame) else { continue };
+                let Some(i) = u.frames.iter().position(|f| f.job.frame == tag.frame) else { continue };
                 match &frame {
                     Some(pixels) => {
+                        let fl = &mut u.frames[i];
                         fl.render_ms = result.render_ms;
                         fl.batch_views = n_views as u32;
-                        u.last_frame = Some((key.clone(), Arc::clone(pixels)));
                         let job = fl.job;
+                        u.last_frame = Some((key.clone(), Arc::clone(pixels)));
+                        u.session.rendered(job.frame);
                         self.outputs.push_back(Output::Encode(EncodeJob {
                             session: tag.session.clone(),
                             frame: job.frame,
@@ -812,8 +821,8 @@ impl MasterCore {
                         }));
                     }
                     None => {
-                        u.in_flight = None;
-                        u.session.frame_failed();
+                        u.frames.remove(i);
+                        u.session.frame_failed(tag.frame);
                         self.metrics.frames_failed.inc();
                         let message = frames.as_ref().err().cloned().unwrap_or_default();
                         tracing::warn!(session = %tag.session, frame = tag.frame, %message, "render failed");
@@ -828,14 +837,15 @@ impl MasterCore {
 
     fn frame_sent(&mut self, session: &str, frame: u64, mut times: FrameTimes, now: Instant) {
         let Some(u) = self.users.get_mut(session) else { return };
-        let Some(fl) = u.in_flight.take_if(|f| f.job.frame == frame) else { return };
+        let Some(i) = u.frames.iter().position(|f| f.job.frame == frame) else { return };
+        let fl = u.frames.remove(i).expect("found");
         times.render_ms = fl.render_ms;
         let job_s = now.saturating_duration_since(fl.job.started_at).as_secs_f64();
         u.clock.frame_sent(now, job_s);
         self.metrics.frames.inc();
         self.metrics.encode_ms.observe(times.convert_ms + times.encode_ms);
         self.metrics.achieved_fps.get_or_create(&u.label()).set(u.clock.achieved_fps());
-        if let Some(mut info) = u.session.frame_done(times) {
+        if let Some(mut info) = u.session.frame_done(frame, times) {
             info.batch_views = fl.batch_views;
             info.reused = fl.reused;
             self.to_viewer(session, ToViewer::Frame(info));

@@ -9,9 +9,10 @@
 //!
 //! Each round (whenever a worker can take work): users ready for a frame are sorted —
 //! starved first, then fewer tasks already loaded on the farm, then earlier target time —
-//! and the farm is filled with them: every starved user, then others until the round's ray
-//! budget (the farm's measured rays per second times the shortest frame period among them)
-//! is spent. Users of one scene share a task; shared tasks go before dedicated ones, heavy
+//! and the farm is filled with them: every starved user (they are late already; holding one
+//! back only makes it later, and one batch renders them faster than one task each), then
+//! others until the round's ray budget (the farm's measured rays per second times the
+//! shortest frame period among them) is spent. Users of one scene share a task; shared tasks go before dedicated ones, heavy
 //! before light.
 //!
 //! Quality before frame rate: with dynamic resolution the scheduler lowers every moving
@@ -63,8 +64,8 @@ pub const STARVED_GRACE: f64 = 0.5;
 pub const TARGET_UTILISATION: f64 = 0.85;
 /// Scales move in steps of 1/32 of the stream size (so they settle instead of jittering).
 pub const SCALE_STEP: f32 = 1.0 / 32.0;
-/// Longest round, seconds: starved users always go, but no round is planned longer.
-pub const MAX_ROUND_S: f64 = 0.25;
+/// Most users in one round (bounds a task's buffers).
+pub const MAX_ROUND_USERS: usize = 64;
 
 /// Exponential moving average.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -184,22 +185,16 @@ pub fn sort_candidates(c: &mut [Candidate]) {
 }
 
 /// How many of the sorted candidates go into this round: every starved one, then others
-/// while the rays fit `rays_per_s × round`, where the round is the shortest frame period of
-/// the candidates (at most [`MAX_ROUND_S`]); always at least one.
+/// while the rays fit `rays_per_s ×` the shortest frame period of the candidates; always at
+/// least one, at most [`MAX_ROUND_USERS`].
 pub fn round_size(sorted: &[Candidate], rays_per_s: f64) -> usize {
-    if sorted.is_empty() {
-        return 0;
-    }
-    let round_s = sorted.iter().map(|c| 1.0 / f64::from(c.fps.max(1))).fold(MAX_ROUND_S, f64::min);
+    let Some(round_s) = sorted.iter().map(|c| 1.0 / f64::from(c.fps.max(1))).reduce(f64::min) else { return 0 };
     let budget = rays_per_s.max(0.0) * round_s;
-    let cap = rays_per_s.max(0.0) * MAX_ROUND_S;
     let mut spent = 0.0;
     let mut n = 0;
-    for c in sorted {
+    for c in sorted.iter().take(MAX_ROUND_USERS) {
         let rays = c.rays as f64;
-        let fits = spent + rays <= budget;
-        let starved_fits = c.starved && spent + rays <= cap;
-        if n > 0 && !fits && !starved_fits {
+        if n > 0 && !c.starved && spent + rays > budget {
             break;
         }
         spent += rays;
@@ -320,11 +315,11 @@ mod tests {
         assert_eq!(round_size(&c, 1e6), 1);
         let c = [cand("a", false, 0, 0, 20_000, t0), cand("b", false, 0, 0, 20_000, t0), cand("c", false, 0, 0, 1, t0)];
         assert_eq!(round_size(&c, 1e6), 2);
-        // Starved users go even past the budget, up to MAX_ROUND_S of rays.
+        // Starved users all go, past the budget; then the budget holds again.
         let c = [cand("a", true, 0, 0, 60_000, t0), cand("b", true, 0, 0, 60_000, t0), cand("c", false, 0, 0, 1, t0)];
         assert_eq!(round_size(&c, 1e6), 2);
-        let c = [cand("a", true, 0, 0, 200_000, t0), cand("b", true, 0, 0, 100_000, t0)];
-        assert_eq!(round_size(&c, 1e6), 1);
+        let many: Vec<Candidate> = (0..100).map(|i| cand(&format!("u{i}"), true, 0, 0, 200_000, t0)).collect();
+        assert_eq!(round_size(&many, 1e6), MAX_ROUND_USERS);
         // One user always goes, however large; nothing measured yet still renders.
         assert_eq!(round_size(&[cand("a", false, 0, 0, 1 << 30, t0)], 1e6), 1);
         assert_eq!(round_size(&[cand("a", false, 0, 0, 5, t0), cand("b", false, 0, 0, 5, t0)], 0.0), 1);

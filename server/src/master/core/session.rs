@@ -9,8 +9,9 @@
 //!   keeps its last good pose;
 //! - latest pose wins: the channel is unordered, so a pose older than the newest seen is
 //!   dropped, and a pose superseded before its frame slot is never rendered;
-//! - at most `fps` frames per second on average, one frame in flight, nothing rendered
-//!   before the first pose. Frame slots lie on a grid one period apart, so a frame that
+//! - at most `fps` frames per second on average, nothing rendered before the first pose;
+//!   frames are pipelined: the next frame may render while the previous one encodes, but at
+//!   most one renders and at most [`MAX_IN_FLIGHT`] are in flight, and they finish in order. Frame slots lie on a grid one period apart, so a frame that
 //!   started late does not delay the next one (a late start can gain back at most half a
 //!   period), and a frame may start up to [`EARLY_START`] of a period before its slot, so
 //!   that users whose slots fall close together share a render round;
@@ -27,6 +28,9 @@ use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
 
 /// With dynamic resolution, a camera still for this long gets one full-size frame.
 pub const REFINE_AFTER: Duration = Duration::from_millis(150);
+
+/// Frames of one session between start and sent: one rendering, one encoding.
+pub const MAX_IN_FLIGHT: usize = 2;
 
 /// Share of a frame period a frame may start before its slot.
 pub const EARLY_START: f64 = 0.1;
@@ -79,8 +83,10 @@ pub struct Session {
     /// Newest validated pose not yet rendered.
     pending: Option<PendingPose>,
     newest_seq: Option<u32>,
-    last_rendered: Option<PendingPose>,
-    in_flight: Option<FrameJob>,
+    /// The pose of the newest frame started.
+    last_started: Option<PendingPose>,
+    /// Frames started and not yet sent, oldest first, with whether each is still rendering.
+    in_flight: std::collections::VecDeque<(FrameJob, bool)>,
     /// Earliest start of the next frame.
     next_slot: Option<Instant>,
     idr_wanted: bool,
@@ -108,8 +114,8 @@ impl Session {
             frame_period: Duration::from_secs_f64(1.0 / f64::from(fps)),
             pending: None,
             newest_seq: None,
-            last_rendered: None,
-            in_flight: None,
+            last_started: None,
+            in_flight: std::collections::VecDeque::new(),
             next_slot: None,
             idr_wanted: true,
             last_idr_at: None,
@@ -148,7 +154,7 @@ impl Session {
         if self.pending.is_some() {
             self.counters.poses_superseded += 1;
         }
-        let previous = self.pending.or(self.last_rendered);
+        let previous = self.pending.or(self.last_started);
         if previous.is_none_or(|p| (p.view, p.instance) != (view, instance)) {
             self.still_since = Some(now);
         }
@@ -170,21 +176,26 @@ impl Session {
 
     /// Something is waiting to be rendered: a new pose, or an owed IDR once a pose was seen.
     pub fn wants_frame(&self) -> bool {
-        self.pending.is_some() || (self.idr_wanted && self.last_rendered.is_some())
+        self.pending.is_some() || (self.idr_wanted && self.last_started.is_some())
     }
 
     /// [`Self::poll_frame`] would start a frame now.
     pub fn ready(&self, now: Instant) -> bool {
-        self.in_flight.is_none() && self.slot_open(now) && self.wants_frame()
+        self.can_start() && self.slot_open(now) && self.wants_frame()
+    }
+
+    /// No frame rendering, and room in the pipeline.
+    fn can_start(&self) -> bool {
+        self.in_flight.len() < MAX_IN_FLIGHT && self.in_flight.iter().all(|(_, rendering)| !rendering)
     }
 
     fn slot_open(&self, now: Instant) -> bool {
         self.next_slot.is_none_or(|t| now + self.frame_period.mul_f64(EARLY_START) >= t)
     }
 
-    /// A frame is rendering or encoding.
-    pub fn in_flight(&self) -> Option<&FrameJob> {
-        self.in_flight.as_ref()
+    /// Frames rendering or encoding, oldest first.
+    pub fn in_flight(&self) -> impl Iterator<Item = &FrameJob> {
+        self.in_flight.iter().map(|(job, _)| job)
     }
 
     /// When the camera last moved (a new pose that differs from the one before).
@@ -193,10 +204,10 @@ impl Session {
     }
 
     /// The frame to start now, if any: a new pose is waiting (or an IDR is owed and a pose
-    /// was ever seen), no frame is in flight, and the frame slot has come. A moving camera
-    /// renders at `moving_scale` (the scheduler's choice).
+    /// was ever seen), no frame is rendering, the pipeline has room, and the frame slot has
+    /// come. A moving camera renders at `moving_scale` (the scheduler's choice).
     pub fn poll_frame(&mut self, now: Instant, moving_scale: f32) -> Option<FrameJob> {
-        if self.in_flight.is_some() || !self.slot_open(now) {
+        if !self.can_start() || !self.slot_open(now) {
             return None;
         }
         let pose = match self.pending.take() {
@@ -205,7 +216,7 @@ impl Session {
             None => return None,
         };
         self.frame_number += 1;
-        let same_pose = self.last_rendered.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
+        let same_pose = self.last_started.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
         // Moving: the controller's scale. Still: keep the last pixels, or, with dynamic
         // resolution and a camera at rest for REFINE_AFTER, render once at full size.
         let at_rest = self.refine_at_rest && self.still_since.is_some_and(|t| now.duration_since(t) >= REFINE_AFTER);
@@ -227,16 +238,25 @@ impl Session {
         // The next slot on the grid, but never less than half a period away.
         let grid = self.next_slot.map_or(now, |slot| slot) + self.frame_period;
         self.next_slot = Some(grid.max(now + self.frame_period / 2));
-        self.in_flight = Some(job);
+        self.last_started = Some(pose);
+        self.last_scale = render_scale;
+        self.in_flight.push_back((job, true));
         Some(job)
     }
 
-    /// The in-flight frame was encoded and sent. Returns the frame info for the client.
-    pub fn frame_done(&mut self, times: FrameTimes) -> Option<FrameInfo> {
-        let job = self.in_flight.take()?;
+    /// `frame`'s pixels are ready (rendered, or reused): it moves on to encoding, and the
+    /// next frame may start rendering.
+    pub fn rendered(&mut self, frame: u64) {
+        if let Some((_, rendering)) = self.in_flight.iter_mut().find(|(j, _)| j.frame == frame) {
+            *rendering = false;
+        }
+    }
+
+    /// `frame` was encoded and sent. Returns the frame info for the client.
+    pub fn frame_done(&mut self, frame: u64, times: FrameTimes) -> Option<FrameInfo> {
+        let i = self.in_flight.iter().position(|(j, _)| j.frame == frame)?;
+        let (job, _) = self.in_flight.remove(i)?;
         self.counters.frames += 1;
-        self.last_rendered = Some(job.pose);
-        self.last_scale = job.render_scale;
         Some(FrameInfo {
             frame: job.frame,
             pose_seq: job.pose.seq,
@@ -251,23 +271,24 @@ impl Session {
         })
     }
 
-    /// The in-flight frame failed (render or encode error); the next frame must be an IDR.
-    pub fn frame_failed(&mut self) {
-        if self.in_flight.take().is_some() {
+    /// `frame` failed (render or encode error); the next frame must be an IDR.
+    pub fn frame_failed(&mut self, frame: u64) {
+        if let Some(i) = self.in_flight.iter().position(|(j, _)| j.frame == frame) {
+            self.in_flight.remove(i);
             self.idr_wanted = true;
         }
     }
 
     /// When the core should call [`Self::poll_frame`] again, if a frame is waiting for its slot.
     pub fn next_wakeup(&self) -> Option<Instant> {
-        if self.in_flight.is_some() || !self.wants_frame() {
+        if !self.can_start() || !self.wants_frame() {
             return None;
         }
         self.next_slot.map(|t| t.checked_sub(self.frame_period.mul_f64(EARLY_START)).unwrap_or(t))
     }
 
     fn repeat_pose(&self, now: Instant) -> Option<PendingPose> {
-        self.last_rendered.map(|p| PendingPose { received_at: now, ..p })
+        self.last_started.map(|p| PendingPose { received_at: now, ..p })
     }
 }
 
@@ -296,6 +317,13 @@ mod tests {
         t0 + Duration::from_millis(ms)
     }
 
+    /// Renders and sends the oldest frame in flight.
+    fn finish(s: &mut Session, times: FrameTimes) -> Option<FrameInfo> {
+        let frame = s.in_flight().next()?.frame;
+        s.rendered(frame);
+        s.frame_done(frame, times)
+    }
+
     #[test]
     fn nothing_before_the_first_pose_then_an_idr() {
         let t0 = Instant::now();
@@ -322,7 +350,7 @@ mod tests {
         s.on_pose(&pose(4, 3.0), ms(t0, 20)).unwrap();
         assert_eq!(s.on_pose(&pose(3, 2.0), ms(t0, 21)), Ok(false), "reordered older pose is dropped");
         assert_eq!(s.poll_frame(ms(t0, 25), 1.0), None, "one frame in flight");
-        let info = s.frame_done(FrameTimes { render_ms: 5.0, ..Default::default() }).unwrap();
+        let info = finish(&mut s, FrameTimes { render_ms: 5.0, ..Default::default() }).unwrap();
         assert_eq!((info.frame, info.pose_seq), (1, 1));
         assert_eq!(info.t_client_ms, 20.0);
         // The slot opens 40 ms after the previous start, less the early-start allowance (4 ms).
@@ -335,6 +363,31 @@ mod tests {
         let c = s.counters();
         assert_eq!((c.poses_accepted, c.poses_stale, c.poses_superseded), (3, 1, 1));
         let _ = job;
+    }
+
+    #[test]
+    fn frames_are_pipelined_render_next_while_encoding_and_finish_in_order() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 100);
+        s.on_pose(&pose(1, 0.0), t0).unwrap();
+        let one = s.poll_frame(t0, 1.0).unwrap();
+        s.on_pose(&pose(2, 1.0), ms(t0, 5)).unwrap();
+        assert!(!s.ready(ms(t0, 10)), "frame 1 is still rendering");
+        s.rendered(one.frame);
+        let two = s.poll_frame(ms(t0, 10), 1.0).expect("frame 2 renders while frame 1 encodes");
+        s.rendered(two.frame);
+        s.on_pose(&pose(3, 2.0), ms(t0, 15)).unwrap();
+        assert!(!s.ready(ms(t0, 20)), "two frames in flight is the most");
+        assert_eq!(s.next_wakeup(), None);
+        assert_eq!(s.frame_done(one.frame, FrameTimes::default()).unwrap().pose_seq, 1);
+        assert!(s.ready(ms(t0, 20)));
+        assert_eq!(s.frame_done(two.frame, FrameTimes::default()).unwrap().pose_seq, 2);
+        assert_eq!(s.frame_done(two.frame, FrameTimes::default()), None, "each frame is done once");
+        // A failure of either frame makes the next one an IDR.
+        let three = s.poll_frame(ms(t0, 20), 1.0).unwrap();
+        s.frame_failed(three.frame);
+        s.on_pose(&pose(4, 3.0), ms(t0, 25)).unwrap();
+        assert!(s.poll_frame(ms(t0, 30), 1.0).unwrap().idr);
     }
 
     #[test]
@@ -351,7 +404,7 @@ mod tests {
                 frames += 1;
             }
             if t % 3 == 2 {
-                s.frame_done(FrameTimes::default());
+                finish(&mut s, FrameTimes::default());
             }
         }
         assert!((59..=61).contains(&frames), "{frames} frames in 2 s at 30 fps");
@@ -370,7 +423,7 @@ mod tests {
         let job = s.poll_frame(t0, 1.0).unwrap();
         assert_eq!(job.pose.seq, 1);
         // A refused pose does not advance the sequence: seq 2 may still come, valid.
-        s.frame_done(FrameTimes::default());
+        finish(&mut s, FrameTimes::default());
         assert_eq!(s.on_pose(&pose(2, 5.0), ms(t0, 30)), Ok(true));
         assert_eq!(s.counters().poses_rejected, 3);
     }
@@ -381,14 +434,14 @@ mod tests {
         let mut s = Session::new(W, H, 50);
         s.on_pose(&pose(1, 0.0), t0).unwrap();
         s.poll_frame(t0, 1.0).unwrap();
-        s.frame_done(FrameTimes::default());
+        finish(&mut s, FrameTimes::default());
         assert!(!s.on_picture_loss(ms(t0, 100)), "within 250 ms of the first IDR");
         assert!(s.on_picture_loss(ms(t0, 300)));
         assert!(!s.on_picture_loss(ms(t0, 301)), "already owed");
         assert_eq!(s.next_wakeup(), Some(ms(t0, 18)), "the 20 ms slot less the early-start allowance");
         let job = s.poll_frame(ms(t0, 300), 1.0).unwrap();
         assert!(job.idr && job.same_as_previous && job.pose.seq == 1);
-        s.frame_done(FrameTimes::default());
+        finish(&mut s, FrameTimes::default());
         assert_eq!(s.poll_frame(ms(t0, 400), 1.0), None, "no new pose, no IDR owed: nothing to do");
     }
 
@@ -401,7 +454,7 @@ mod tests {
             seq += 1;
             s.on_pose(&pose(seq, az), ms(t0, t)).unwrap();
             let job = s.poll_frame(ms(t0, t), moving_scale).expect("a frame");
-            s.frame_done(FrameTimes::default());
+            finish(s, FrameTimes::default());
             job
         };
         // Moving: the scheduler's scale.
@@ -424,7 +477,7 @@ mod tests {
         let mut f = Session::new(W, H, 50);
         f.on_pose(&pose(1, 0.0), t0).unwrap();
         f.poll_frame(t0, 0.5).unwrap();
-        f.frame_done(FrameTimes::default());
+        finish(&mut f, FrameTimes::default());
         f.on_pose(&pose(2, 0.0), ms(t0, 500)).unwrap();
         let job = f.poll_frame(ms(t0, 500), 0.5).unwrap();
         assert!(job.same_as_previous && job.render_scale == 0.5);
@@ -436,10 +489,11 @@ mod tests {
         let mut s = Session::new(W, H, 50);
         s.on_pose(&pose(1, 0.0), t0).unwrap();
         s.poll_frame(t0, 1.0).unwrap();
-        s.frame_done(FrameTimes::default());
+        finish(&mut s, FrameTimes::default());
         s.on_pose(&pose(2, 1.0), ms(t0, 20)).unwrap();
         s.poll_frame(ms(t0, 20), 1.0).unwrap();
-        s.frame_failed();
+        let failing = s.in_flight().next().unwrap().frame;
+        s.frame_failed(failing);
         s.on_pose(&pose(3, 2.0), ms(t0, 40)).unwrap();
         assert!(s.poll_frame(ms(t0, 40), 1.0).unwrap().idr);
     }
