@@ -53,7 +53,7 @@ fn short_trace(name: &str, poses: usize) -> Trace {
 async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
     let (addr, catalog) = start_server(4).await;
     let trace = short_trace("orbit", 100);
-    let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2) };
+    let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None };
     let scene = &catalog.scenes["trio"];
     let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await.unwrap();
     println!("{report}");
@@ -73,7 +73,7 @@ async fn ar_keyed_alpha_matches_the_renderer_alpha() {
     let trace = short_trace("zoom", 60);
     // The object placed on a "table": moved and scaled, as the AR page's plane anchor does.
     let anchor = Mat4::from_scale_rotation_translation(glam::Vec3::splat(0.8), glam::Quat::IDENTITY, glam::Vec3::new(0.2, -0.1, 0.0));
-    let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2) };
+    let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None };
     let scene = &catalog.scenes["trio"];
     let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await.unwrap();
     println!("{report}");
@@ -186,6 +186,7 @@ async fn bad_input_gets_clear_errors_while_another_session_keeps_streaming() {
         (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":100000,"height":480,"fps":50}"#], "bad_request", "100000x480"),
         (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":7680,"height":4320,"fps":50}"#], "bad_request", "outside the stream limits"),
         (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":0}"#], "bad_request", "fps 0"),
+        (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":1000000}"#], "bad_request", "fps 1000000 is outside 1..=120"),
         (&[r#"{"type":"join","scene":"nope","mode":"viewer","width":64,"height":64,"fps":50}"#], "unknown_scene", "no master serves scene \"nope\"; scenes on offer: trio"),
         (&[r#"{"type":"join","scene":"trio","mode":"viewer","width":64,"height":64,"fps":50}"#, r#"{"type":"offer","sdp":"garbage"}"#], "", "bad offer"),
     ];
@@ -299,7 +300,7 @@ async fn users_with_different_fps_each_get_their_own_poses() {
         let mut client = client_opts(addr, Mode::Viewer, 96, 72);
         client.fps = fps;
         client.keep_pixels = false;
-        let opts = ReplayOptions { client, anchor: None, quality_every: 0, save_dir: None, drain: Duration::from_secs(1) };
+        let opts = ReplayOptions { client, anchor: None, quality_every: 0, save_dir: None, drain: Duration::from_secs(1), start_at: None };
         runs.push((fps, tokio::spawn(async move { replay(&trace, &opts, None).await })));
     }
     // While they stream, the metrics page lists every user with its target.

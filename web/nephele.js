@@ -252,6 +252,7 @@ const ERROR_WORDS = {
   no_capacity: 'No render server has room right now',
   master_lost: 'The render server went away',
   rejected: 'The render server refused the session',
+  unknown_scene: 'No render server has this scene',
   unauthorized: 'The server needs a valid access token (add ?token=… to the address)',
   bad_request: 'The server did not accept the request',
   bad_message: 'The server did not understand a message',
@@ -278,7 +279,7 @@ export function describeError(code, message) {
 }
 
 // Errors after which retrying cannot help until the user changes something.
-const FATAL_CODES = new Set(['unauthorized', 'bad_request', 'rejected', 'bad_message', 'too_large', 'wrong_role', 'not_joined']);
+const FATAL_CODES = new Set(['unauthorized', 'bad_request', 'rejected', 'unknown_scene', 'bad_message', 'too_large', 'wrong_role', 'not_joined']);
 
 const POSE_PERIOD_MS = 20;
 const STATS_PERIOD_MS = 500;
@@ -657,6 +658,9 @@ export function hudLines(conn) {
     // The server renders at this fraction of the stream size when moving (dynamic
     // resolution) and refines to full size when the camera rests.
     ['render', f ? `${Math.round((f.render_scale ?? 1) * 100)}% · ${f.render_ms.toFixed(0)} ms` : '–'],
+    // Several users' views rendered in one task, or a frame reused (camera at rest, or the
+    // same view as another user's).
+    ['batch', f ? (f.reused ? 'reused' : `${f.batch_views ?? 1} view${(f.batch_views ?? 1) === 1 ? '' : 's'}`) : '–'],
     ['encode', f ? `${f.encode_ms.toFixed(1)} ms` : '–'],
     ['frame', f ? String(f.frame) : '–'],
   ];

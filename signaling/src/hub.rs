@@ -98,8 +98,10 @@ pub enum SignalError {
     #[error("no master is registered; try again later")]
     NoMaster,
     /// All registered masters serving the scene are at capacity or saturated.
-    #[error("all {masters} masters serving scene {scene:?} are full or saturated (their users are behind their frame rates); try again later")]
-    AllFull { masters: usize, scene: String },
+    #[error(
+        "all {masters} masters serving scene {scene:?} are busy: {saturated} report users behind their frame rates, {full} have every session slot taken; try again later"
+    )]
+    AllFull { masters: usize, scene: String, saturated: usize, full: usize },
     /// No registered master serves the scene.
     #[error("no master serves scene {scene:?}; scenes on offer: {offered}")]
     UnknownScene { scene: String, offered: String },
@@ -548,6 +550,8 @@ impl Hub {
             .ok_or_else(|| SignalError::AllFull {
                 masters: serving.len(),
                 scene: scene.to_owned(),
+                saturated: serving.iter().filter(|(_, m)| m.saturated).count(),
+                full: serving.iter().filter(|(_, m)| m.sessions >= m.capacity).count(),
             })
     }
 
@@ -835,7 +839,7 @@ mod tests {
         hub.connect(ConnId(20), t0);
         let (to, code, message) = error_code(&send(&mut hub, 20, join_json(), t0));
         assert_eq!((to, code.as_str()), (20, "no_capacity"));
-        assert!(message.contains("all 2 masters serving scene \"cubes\" are full or saturated"), "{message}");
+        assert_eq!(message, "all 2 masters serving scene \"cubes\" are busy: 1 report users behind their frame rates, 1 have every session slot taken; try again later");
         send(&mut hub, 2, json!({"type":"heartbeat","sessions":3,"free_rays_per_s":1e9,"saturated":false}), t0);
         assert_eq!(add_client(&mut hub, 21, t0).1, 2);
     }

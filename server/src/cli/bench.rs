@@ -157,8 +157,8 @@ pub fn run(what: BenchCommand) -> Result<()> {
                 println!("\n{batch} views around the orbit, median of {runs} runs:\n");
                 println!("| backend | size | one call ms per view | one view per call ms per view | batching speed-up |");
                 println!("|---|---|---:|---:|---:|");
-                for (backend, (w, h), together, alone) in &batches {
-                    println!("| {backend} | {w}×{h} | {together:.1} | {alone:.1} | {:.2}x |", alone / together);
+                for BatchRow { backend, size: (w, h), together_ms, alone_ms } in &batches {
+                    println!("| {backend} | {w}×{h} | {together_ms:.1} | {alone_ms:.1} | {:.2}x |", alone_ms / together_ms);
                 }
             }
             println!("\nmemory:\n{}", a.memory());
@@ -197,7 +197,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
                     anchor: None,
                     quality_every: 10,
                     save_dir: None,
-                    drain: std::time::Duration::from_secs(2),
+                    drain: std::time::Duration::from_secs(2), start_at: None
                 };
                 let scene = &catalog.scenes["bench"];
                 replay::replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await
@@ -275,6 +275,14 @@ pub fn bench_render(
     Ok(rows)
 }
 
+/// One row of `bench render --batch`: ms per view in one call and one view per call.
+pub struct BatchRow {
+    pub backend: String,
+    pub size: (u32, u32),
+    pub together_ms: f64,
+    pub alone_ms: f64,
+}
+
 /// ms per view rendering `n` orbit views in one call, and one per call (medians of `runs`).
 pub fn bench_batch(
     backend: &dyn Backend,
@@ -283,7 +291,7 @@ pub fn bench_batch(
     runs: usize,
     distance: f64,
     n: usize,
-) -> Result<Vec<(String, (u32, u32), f64, f64)>> {
+) -> Result<Vec<BatchRow>> {
     let prepared = backend.prepare(asset)?;
     let settings = RenderSettings::default();
     let median = |mut v: Vec<f64>| {
@@ -307,7 +315,7 @@ pub fn bench_batch(
             }
             alone.push(t.elapsed().as_secs_f64() * 1e3 / n as f64);
         }
-        out.push((backend.name(), (w, h), median(together), median(alone)));
+        out.push(BatchRow { backend: backend.name(), size: (w, h), together_ms: median(together), alone_ms: median(alone) });
     }
     Ok(out)
 }

@@ -83,7 +83,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
         anchor: None,
         quality_every: args.quality_every,
         save_dir: args.save,
-        drain: std::time::Duration::from_secs(1),
+        drain: std::time::Duration::from_secs(1), start_at: None
     };
     let rt = tokio::runtime::Runtime::new()?;
     let report = rt.block_on(replay::replay(&trace, &opts, reference.as_deref().map(|r| (r, settings))))?;

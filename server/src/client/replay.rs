@@ -105,6 +105,8 @@ pub struct ReplayOptions {
     pub save_dir: Option<std::path::PathBuf>,
     /// How long to wait for the last frames after the last pose.
     pub drain: Duration,
+    /// Send the first pose at this time (several clients in lockstep), not at once.
+    pub start_at: Option<Instant>,
 }
 
 /// Percentiles of a sample, ms.
@@ -229,6 +231,9 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
     let mut infos: Vec<(FrameInfo, Instant)> = Vec::new();
     let mut errors = Vec::new();
     let period = Duration::from_secs_f64(trace.period_ms / 1e3);
+    if let Some(at) = opts.start_at {
+        tokio::time::sleep_until(tokio::time::Instant::from_std(at)).await;
+    }
     let mut ticker = tokio::time::interval(period);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
     let mut next = 0usize;

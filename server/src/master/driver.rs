@@ -61,7 +61,8 @@ enum Event {
     Fatal(String),
     Peer(String, PeerEvent),
     Worker(WorkerEvent),
-    Encoded { session: String, frame: u64, encoder: FrameEncoder, result: Result<(Bytes, FrameTimes), String> },
+    /// `encoder` is `None` when it could not be made (the session cannot stream).
+    Encoded { session: String, frame: u64, encoder: Option<Box<FrameEncoder>>, result: Result<(Bytes, FrameTimes), String> },
     Sent { session: String, frame: u64, times: FrameTimes },
     SendFailed { session: String, frame: u64, error: String },
 }
@@ -78,8 +79,11 @@ enum PeerCommand {
 /// The driver's side of one session.
 struct SessionEdge {
     commands: mpsc::UnboundedSender<PeerCommand>,
-    /// Home when no frame of this session is encoding.
+    /// Home when no frame of this session is encoding; made on the first frame (on the
+    /// blocking pool, not in this loop).
     encoder: Option<FrameEncoder>,
+    encoder_config: EncoderConfig,
+    encoder_made: bool,
     /// Frames waiting for the encoder, in order.
     waiting: std::collections::VecDeque<EncodeJob>,
     started: Instant,
@@ -174,7 +178,10 @@ fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mp
         Event::Worker(WorkerEvent::Done(result)) => Some(Input::RenderDone(result)),
         Event::Encoded { session, frame, encoder, result } => {
             let edge = sessions.get_mut(&session)?;
-            edge.encoder = Some(encoder);
+            let Some(encoder) = encoder else {
+                return Some(Input::PeerClosed { session, reason: result.err().unwrap_or_default() });
+            };
+            edge.encoder = Some(*encoder);
             next_encode(edge, events);
             match result {
                 Ok((access_unit, times)) => {
@@ -215,15 +222,21 @@ fn execute(
     inputs: &mut Vec<Input>,
 ) {
     match out {
-        Output::Accept(req) => match FrameEncoder::new(EncoderConfig::new(req.width, req.height, req.fps)) {
-            Err(e) => inputs.push(Input::PeerClosed { session: req.session, reason: format!("cannot create the encoder: {e}") }),
-            Ok(encoder) => {
-                let (tx, rx) = mpsc::unbounded_channel();
-                let edge = SessionEdge { commands: tx, encoder: Some(encoder), waiting: Default::default(), started: Instant::now(), last_sent: None, fps: req.fps };
-                sessions.insert(req.session.clone(), edge);
-                tokio::spawn(peer_task(req.session, Arc::clone(api), rx, events.clone(), to_signal.clone()));
-            }
-        },
+        Output::Accept(req) => {
+            let (tx, rx) = mpsc::unbounded_channel();
+            let edge = SessionEdge {
+                commands: tx,
+                encoder: None,
+                encoder_config: EncoderConfig::new(req.width, req.height, req.fps),
+                encoder_made: false,
+                waiting: Default::default(),
+                started: Instant::now(),
+                last_sent: None,
+                fps: req.fps,
+            };
+            sessions.insert(req.session.clone(), edge);
+            tokio::spawn(peer_task(req.session, Arc::clone(api), rx, events.clone(), to_signal.clone()));
+        }
         Output::Reject { session, reason } => {
             let _ = to_signal.send(ToSignal::Reject { session, reason });
         }
@@ -255,17 +268,25 @@ fn execute(
     }
 }
 
-/// Starts the session's next waiting frame if its encoder is home.
+/// Starts the session's next waiting frame if its encoder is home (or not made yet).
 fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>) {
-    if edge.encoder.is_none() {
-        return;
+    if edge.encoder.is_none() && edge.encoder_made {
+        return; // busy with the previous frame
     }
     let Some(job) = edge.waiting.pop_front() else { return };
-    let encoder = edge.encoder.take().expect("checked");
-    let (events, started) = (events.clone(), edge.started);
+    let encoder = edge.encoder.take();
+    edge.encoder_made = true;
+    let (events, started, config) = (events.clone(), edge.started, edge.encoder_config);
     tokio::task::spawn_blocking(move || {
         let (session, frame) = (job.session.clone(), job.frame);
-        let (encoder, result) = encode(encoder, &job, started);
+        let made = encoder.map_or_else(|| FrameEncoder::new(config).map_err(|e| format!("cannot create the encoder: {e}")), Ok);
+        let (encoder, result) = match made {
+            Ok(encoder) => {
+                let (encoder, result) = encode(encoder, &job, started);
+                (Some(Box::new(encoder)), result)
+            }
+            Err(e) => (None, Err(e)),
+        };
         let _ = events.send(Event::Encoded { session, frame, encoder, result });
     });
 }

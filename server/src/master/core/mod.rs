@@ -237,6 +237,8 @@ pub struct MasterCore {
     next_heartbeat: Option<Instant>,
     /// What the last heartbeat said about saturation.
     saturated_said: bool,
+    /// Origin of every session's frame-slot grid.
+    epoch: Instant,
     now: Instant,
     metrics: Arc<MasterMetrics>,
 }
@@ -255,6 +257,7 @@ impl MasterCore {
             next_task: 1,
             next_heartbeat: None,
             saturated_said: false,
+            epoch: now,
             now,
             metrics,
         }
@@ -306,7 +309,7 @@ impl MasterCore {
             Input::Pose { session, bytes } => self.pose(&session, &bytes, now),
             Input::ChannelMisuse { session, message } => {
                 if self.users.contains_key(&session) {
-                    self.to_viewer(&session, ToViewer::Error { code: "bad_pose".into(), message });
+                    self.tell(&session, ToViewer::Error { code: "bad_pose".into(), message });
                 }
             }
             Input::PictureLoss { session } => {
@@ -324,7 +327,7 @@ impl MasterCore {
                     u.frames.remove(i);
                     u.session.frame_failed(frame);
                     self.metrics.frames_failed.inc();
-                    self.to_viewer(&session, ToViewer::Error { code: "frame_failed".into(), message: error });
+                    self.tell(&session, ToViewer::Error { code: "frame_failed".into(), message: error });
                 }
             }
             Input::WorkerUp { worker, rays_per_s, slots } => {
@@ -374,7 +377,7 @@ impl MasterCore {
         t.max(self.now)
     }
 
-    fn to_viewer(&mut self, session: &str, msg: ToViewer) {
+    fn tell(&mut self, session: &str, msg: ToViewer) {
         self.outputs.push_back(Output::ToViewer { session: session.into(), msg });
     }
 
@@ -395,7 +398,7 @@ impl MasterCore {
                 };
                 let user = User {
                     background: background_of(req.mode),
-                    session: Session::with_refinement(req.width, req.height, req.fps, refine),
+                    session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)),
                     clock: UserClock::new(req.fps, now),
                     joined_at: now,
                     connected: false,
@@ -489,13 +492,14 @@ impl MasterCore {
         u.session.wants_frame() && u.clock.lateness(now).as_secs_f64() > STARVED_GRACE * u.clock.period_s()
     }
 
+    /// A newcomer starts no larger than the scale everyone else has now (so its first frames
+    /// do not slow their rounds), and within the frame budget.
     fn initial_scale(&self, req: &JoinRequest, min: f32) -> f32 {
         let rays = self.farm_rays_per_s();
+        let others = self.users.values().map(|u| u.scale).fold(0.5f32.max(min), f32::min);
         match self.cfg.render_scale {
-            RenderScale::Auto { budget_ms, .. } if rays > 0.0 => {
-                latency_scale(f64::from(req.width) * f64::from(req.height), rays, budget_ms, min).min(0.5f32.max(min))
-            }
-            _ => 0.5f32.max(min),
+            RenderScale::Auto { budget_ms, .. } if rays > 0.0 => latency_scale(f64::from(req.width) * f64::from(req.height), rays, budget_ms, min).min(others),
+            _ => others,
         }
     }
 
@@ -514,7 +518,7 @@ impl MasterCore {
             height: u.req.height,
             fps: u.req.fps,
         };
-        self.to_viewer(session, msg);
+        self.tell(session, msg);
     }
 
     fn pose(&mut self, session: &str, bytes: &[u8], now: Instant) {
@@ -523,7 +527,7 @@ impl MasterCore {
         match u.session.on_pose(bytes, now) {
             Ok(true) if !was_waiting => u.clock.waiting_since = Some(now),
             Ok(_) => {}
-            Err(e) => self.to_viewer(session, ToViewer::Error { code: "bad_pose".into(), message: e.to_string() }),
+            Err(e) => self.tell(session, ToViewer::Error { code: "bad_pose".into(), message: e.to_string() }),
         }
     }
 
@@ -848,7 +852,7 @@ impl MasterCore {
         if let Some(mut info) = u.session.frame_done(frame, times) {
             info.batch_views = fl.batch_views;
             info.reused = fl.reused;
-            self.to_viewer(session, ToViewer::Frame(info));
+            self.tell(session, ToViewer::Frame(info));
         }
     }
 

@@ -95,6 +95,8 @@ pub struct Session {
     counters: SessionCounters,
     /// Dynamic resolution: refine a camera at rest to full size.
     refine_at_rest: bool,
+    /// Origin of the slot grid (the first frame's start if not given).
+    epoch: Option<Instant>,
     last_scale: f32,
     /// When the camera (or anchor) last changed.
     still_since: Option<Instant>,
@@ -108,6 +110,11 @@ impl Session {
 
     /// `refine_at_rest`: dynamic resolution, where a still camera gets one full-size frame.
     pub fn with_refinement(width: u32, height: u32, fps: u32, refine_at_rest: bool) -> Self {
+        Self::with_epoch(width, height, fps, refine_at_rest, None)
+    }
+
+    /// Frame slots at `epoch + k / fps` (shared by every session of a master).
+    pub fn with_epoch(width: u32, height: u32, fps: u32, refine_at_rest: bool, epoch: Option<Instant>) -> Self {
         let fps = fps.clamp(nephele_limits::MIN_FPS, nephele_limits::MAX_FPS);
         Self {
             size: (width, height),
@@ -122,6 +129,7 @@ impl Session {
             frame_number: 0,
             counters: SessionCounters::default(),
             refine_at_rest,
+            epoch,
             last_scale: f32::NAN,
             still_since: None,
         }
@@ -235,9 +243,11 @@ impl Session {
             self.last_idr_at = Some(now);
         }
         self.idr_wanted = false;
-        // The next slot on the grid, but never less than half a period away.
-        let grid = self.next_slot.map_or(now, |slot| slot) + self.frame_period;
-        self.next_slot = Some(grid.max(now + self.frame_period / 2));
+        // The next slot: the first grid point at least half a period away.
+        let epoch = *self.epoch.get_or_insert(now);
+        let period = self.frame_period.as_secs_f64();
+        let earliest = now.saturating_duration_since(epoch).as_secs_f64() + 0.5 * period;
+        self.next_slot = Some(epoch + Duration::from_secs_f64((earliest / period).ceil() * period));
         self.last_started = Some(pose);
         self.last_scale = render_scale;
         self.in_flight.push_back((job, true));

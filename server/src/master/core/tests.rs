@@ -351,7 +351,7 @@ fn no_user_starves_forever_under_overload() {
         assert!(sim.join(s, "lego", 160, 120, fps));
     }
     sim.run_until(6000);
-    for (s, fps) in users {
+    for (s, _) in users {
         let gap = sim.max_gap_ms(s, 1000, 6000);
         assert!(gap < 500.0, "{s} waited {gap} ms");
     }
