@@ -54,8 +54,8 @@ async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
     let (addr, catalog) = start_server(4).await;
     let trace = short_trace("orbit", 100);
     let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None };
-    let scene = &catalog.scenes["trio"];
-    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await.unwrap();
+    let reference = |view, instance, background| catalog.render_scene("trio", view, instance, background);
+    let report = replay(&trace, &opts, Some(&reference)).await.unwrap();
     println!("{report}");
     assert!(report.frames_decoded >= 5, "only {} frames decoded", report.frames_decoded);
     assert_eq!(report.frames_unknown_pose, 0, "frames answering poses never sent");
@@ -74,8 +74,8 @@ async fn ar_keyed_alpha_matches_the_renderer_alpha() {
     // The object placed on a "table": moved and scaled, as the AR page's plane anchor does.
     let anchor = Mat4::from_scale_rotation_translation(glam::Vec3::splat(0.8), glam::Quat::IDENTITY, glam::Vec3::new(0.2, -0.1, 0.0));
     let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None };
-    let scene = &catalog.scenes["trio"];
-    let report = replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await.unwrap();
+    let reference = |view, instance, background| catalog.render_scene("trio", view, instance, background);
+    let report = replay(&trace, &opts, Some(&reference)).await.unwrap();
     println!("{report}");
     assert!(report.errors.is_empty(), "{:?}", report.errors);
     assert!(report.quality.len() >= 3, "{} frames compared", report.quality.len());
@@ -330,4 +330,31 @@ async fn http_get(addr: SocketAddr, path: &str) -> String {
     s.read_to_string(&mut out).await.unwrap();
     assert!(out.starts_with("HTTP/1.1 200"), "{out}");
     out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_composed_scene_streams_what_a_direct_composed_render_shows() {
+    let dir = nephele_e2e::TempDir::new("pair");
+    let scene = nephele_e2e::pair_scene(&dir.0);
+    // 640×480: at 320×240 the H.264 chain itself (4:2:0 chroma, BT.601, OpenH264) stops at
+    // ~33.5 dB on these saturated checkers whatever the bitrate; at 640×480 at ~37 dB.
+    let (server, catalog) = nephele_e2e::start_server_full(&[scene], core_config(4), 0.5).await;
+    assert_eq!(catalog.scenes["pair"].objects.len(), 2);
+    let mut trace = Trace::builtin("orbit").unwrap();
+    // Every 5th pose of the whole turn: both depth orders are seen.
+    trace.poses = trace.poses.iter().step_by(5).copied().collect();
+    trace.period_ms = 60.0;
+    let mut client = client_opts(server.addr, Mode::Viewer, 640, 480);
+    client.scene = "pair".into();
+    client.fps = 20;
+    let opts = ReplayOptions { client, anchor: None, quality_every: 1, save_dir: None, drain: Duration::from_secs(2), start_at: None };
+    // The page's background is the scene's (viewer mode); the reference uses it too.
+    let reference = |view, instance, _bg| catalog.render_scene("pair", view, instance, glam::Vec3::new(0.9, 0.95, 1.0));
+    let report = replay(&trace, &opts, Some(&reference)).await.unwrap();
+    println!("{report}");
+    assert!(report.errors.is_empty(), "{:?}", report.errors);
+    assert_eq!(report.frames_unknown_pose + report.frames_without_pose, 0);
+    assert!(report.quality.len() >= 8, "{} frames compared", report.quality.len());
+    let min = report.min_psnr().unwrap();
+    assert!(min >= 35.0, "composed stream vs direct composed render: min PSNR {min:.2} dB: {:?}", report.quality);
 }

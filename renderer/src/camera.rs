@@ -92,7 +92,7 @@ pub fn rotation_deviation(r: &DMat3) -> f64 {
 }
 
 /// A camera: pose plus intrinsics.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct View {
     /// Camera-to-world, OpenGL convention.
     pub world_from_camera: DMat4,
@@ -184,6 +184,16 @@ impl Instance {
     pub fn world_from_object(&self) -> DMat4 {
         DMat4::from_scale_rotation_translation(DVec3::splat(self.scale), self.rotation, self.translation)
     }
+
+    /// `self ∘ inner`: place something placed by `inner` with `self` (e.g. an AR anchor
+    /// around a scene object's own placement).
+    pub fn then_inside(&self, inner: &Instance) -> Instance {
+        Instance {
+            rotation: (self.rotation * inner.rotation).normalize(),
+            translation: self.translation + self.rotation.mul_vec3(inner.translation * self.scale),
+            scale: self.scale * inner.scale,
+        }
+    }
 }
 
 /// Per-view ray set-up in the object's space, prepared on the host in f64.
@@ -244,6 +254,16 @@ mod tests {
 
     fn k() -> Intrinsics {
         Intrinsics::from_fov_x(64, 48, 0.8)
+    }
+
+    #[test]
+    fn placements_compose_like_their_matrices() {
+        let anchor = Instance { rotation: DQuat::from_rotation_z(0.4), translation: DVec3::new(1.0, -2.0, 0.5), scale: 0.5 };
+        let object = Instance { rotation: DQuat::from_rotation_x(1.1), translation: DVec3::new(0.3, 0.2, -0.7), scale: 3.0 };
+        let both = anchor.then_inside(&object);
+        let expected = anchor.world_from_object() * object.world_from_object();
+        assert!((both.world_from_object() - expected).to_cols_array().iter().all(|d| d.abs() < 1e-12));
+        assert_eq!(Instance::default().then_inside(&object), Instance { rotation: object.rotation.normalize(), ..object });
     }
 
     #[test]

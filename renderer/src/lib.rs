@@ -6,6 +6,7 @@
 
 pub mod asset;
 pub mod camera;
+pub mod compose;
 pub mod cubes;
 pub mod dataset;
 pub mod gpu;
@@ -14,6 +15,7 @@ pub mod model;
 pub mod procedural;
 pub mod psh;
 pub mod render;
+pub mod scene;
 pub mod sh;
 pub mod synth;
 pub mod train;

@@ -16,7 +16,11 @@ use nephele_renderer::{
 pub const DEFAULT_ASSET: &str = "builtin:lego";
 
 /// The scenes `nephele serve` offers by default (the first is the default scene).
-pub const DEFAULT_SCENES: [&str; 2] = ["lego=builtin:lego", "trio=builtin:trio"];
+pub const DEFAULT_SCENES: [&str; 3] = ["lego=builtin:lego", "trio=builtin:trio", "duo=builtin:duo"];
+
+/// The built-in scene files (`builtin:<name>` as a scene): `duo` places lego and trio so
+/// that their depth order flips as the camera orbits.
+pub const BUILTIN_SCENE_FILES: &[(&str, &str)] = &[("duo", include_str!("../../examples/scenes/duo.json"))];
 
 /// The demo asset (see `examples/assets/README.md` for how it was made).
 pub const LEGO_NOLF: &[u8] = include_bytes!("../../examples/assets/lego.nolf");

@@ -264,3 +264,4 @@ fn the_largest_stream_frames_encode() {
         assert!(frame.is_idr && parse_pose_seq(&frame.annex_b) == Some(7), "{w}x{h}");
     }
 }
+

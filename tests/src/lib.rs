@@ -11,6 +11,8 @@ use nephele::{
     catalog::Catalog,
     master::{
         MasterConfig,
+        compositor::ComposeChoice,
+        encoder::DEFAULT_BITS_PER_PIXEL,
         core::{Admission, CoreConfig, scheduler::RenderScale},
     },
     web::{self, LocalServer},
@@ -62,8 +64,51 @@ pub fn core_config(capacity: u32) -> CoreConfig {
 
 /// Signaling + a master (CPU backend, the fixture scene) + pages, in this process.
 pub async fn start_server(core: CoreConfig) -> (LocalServer, Arc<Catalog>) {
-    let catalog = Arc::new(Catalog::load(&[fixture_scene()], &CpuBackend, RenderSettings::default()).expect("fixture asset"));
-    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1 };
+    start_server_with(&[fixture_scene()], core).await
+}
+
+/// [`start_server`] serving `scenes` (`name=asset` or `name=scene.json`).
+pub async fn start_server_with(scenes: &[String], core: CoreConfig) -> (LocalServer, Arc<Catalog>) {
+    start_server_full(scenes, core, DEFAULT_BITS_PER_PIXEL).await
+}
+
+/// [`start_server_with`] at `bits_per_pixel` of video.
+pub async fn start_server_full(scenes: &[String], core: CoreConfig, bits_per_pixel: f64) -> (LocalServer, Arc<Catalog>) {
+    let catalog = Arc::new(Catalog::load(scenes, &CpuBackend, RenderSettings::default()).expect("the scenes load"));
+    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1, compose: ComposeChoice::Cpu, bits_per_pixel };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("a loopback port");
     (web::spawn_local(listener, Arc::clone(&catalog), cfg).await.expect("the server starts"), catalog)
+}
+
+/// A fresh directory under the system's temp dir, removed when dropped.
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("nephele-e2e-{tag}-{}-{:?}", std::process::id(), std::thread::current().id()));
+        std::fs::create_dir_all(&dir).expect("a temp dir");
+        Self(dir)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        std::fs::remove_dir_all(&self.0).ok();
+    }
+}
+
+/// A two-object scene of the small procedural fixtures, overlapping so that the depth
+/// order flips as the camera orbits; written into `dir`, returned as `name=path`.
+pub fn pair_scene(dir: &std::path::Path) -> String {
+    let path = dir.join("pair.json");
+    let trio = repo().join("examples/assets/trio-small.nolf");
+    let text = serde_json::json!({
+        "background": [0.9, 0.95, 1.0],
+        "objects": [
+            { "asset": trio.display().to_string(), "world_from_object": { "translation": [-0.5, 0.0, 0.0], "scale": 0.6 } },
+            { "asset": "builtin:diffuse-small", "world_from_object": { "rotation": [0.0, 0.0, 0.3826834, 0.9238795], "translation": [0.6, 0.1, 0.1], "scale": 0.5 } }
+        ]
+    });
+    std::fs::write(&path, text.to_string()).expect("writing the scene file");
+    format!("pair={}", path.display())
 }

@@ -12,6 +12,7 @@ use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
 pub use wgpu::DeviceType;
 
+pub mod compose;
 pub mod ngp;
 
 use crate::{
@@ -103,7 +104,7 @@ pub struct GpuContext {
     sampler: wgpu::Sampler,
 }
 
-fn gpu_err(e: impl std::fmt::Display) -> RenderError {
+pub(crate) fn gpu_err(e: impl std::fmt::Display) -> RenderError {
     RenderError::Gpu(e.to_string())
 }
 
@@ -363,7 +364,7 @@ pub fn pack_mlp(m: &crate::mlp::SpecularMlp) -> Vec<[f32; 4]> {
     out
 }
 
-fn dispatch_2d(groups: u32) -> (u32, u32) {
+pub(crate) fn dispatch_2d(groups: u32) -> (u32, u32) {
     (groups.clamp(1, 65535), groups.div_ceil(65535).max(1))
 }
 

@@ -18,6 +18,8 @@ use crate::{
     client::{ClientOptions, replay},
     master::{
         MasterConfig,
+        compositor::ComposeChoice,
+        encoder::DEFAULT_BITS_PER_PIXEL,
         core::{CoreConfig, scheduler::RenderScale},
     },
     web,
@@ -187,6 +189,8 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
                 rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
                 core: CoreConfig { render_scale: *scale, ..Default::default() },
                 workers: 1,
+                compose: ComposeChoice::Cpu,
+        bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
             };
             let catalog = Arc::clone(&catalog);
             let report = rt.block_on(async {
@@ -199,8 +203,8 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
                     save_dir: None,
                     drain: std::time::Duration::from_secs(2), start_at: None
                 };
-                let scene = &catalog.scenes["bench"];
-                replay::replay(&trace, &opts, Some((scene.prepared.as_ref(), catalog.settings))).await
+                let reference = |view, instance, background| catalog.render_scene("bench", view, instance, background);
+                replay::replay(&trace, &opts, Some(&reference)).await
             })?;
             reports.push((label.clone(), report));
         }

@@ -6,15 +6,19 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use glam::{DMat4, DVec3};
 use nephele_renderer::{
-    Intrinsics, RenderSettings, View, ViewRequest,
+    Instance, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
     procedural::{self, ProceduralConfig, Scene},
 };
 
-use crate::assets::{BackendChoice, DEFAULT_ASSET, load_asset, make_backend, parse_color, parse_size};
+use crate::{
+    assets::{BackendChoice, DEFAULT_ASSET, load_asset, make_backend, parse_color, parse_size},
+    catalog::Catalog,
+};
 
 #[derive(clap::Args)]
 pub struct RenderArgs {
-    /// A .nolf file or builtin:<lego|diffuse|shiny|translucent|trio>[-small].
+    /// A .nolf file, builtin:<lego|diffuse|shiny|translucent|trio>[-small], or a scene file
+    /// (.json: several assets composed by depth).
     #[arg(default_value = DEFAULT_ASSET)]
     asset: String,
     /// Camera pose: JSON with a row-major 4×4 camera-to-world `transform_matrix` (NeRF style)
@@ -80,7 +84,6 @@ struct PoseFile {
 pub fn render(args: RenderArgs) -> Result<()> {
     let (w, h) = parse_size(&args.size)?;
     let background = parse_color(&args.background)?;
-    let asset = load_asset(&args.asset)?;
     let backend = make_backend(args.backend)?;
     let view = match &args.pose {
         Some(path) => {
@@ -93,9 +96,20 @@ pub fn render(args: RenderArgs) -> Result<()> {
         None => View::orbit(DVec3::ZERO, args.distance, args.azimuth, args.elevation, Intrinsics::from_fov_x(w, h, args.fov.to_radians() as f32)),
     };
     let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
-    let prepared = backend.prepare(asset)?;
-    let out = prepared.render(&[ViewRequest::new(view).with_background(background)], &settings)?;
-    let frame = &out.frames[0];
+    let is_scene = args.asset.ends_with(".json") || crate::assets::BUILTIN_SCENE_FILES.iter().any(|(n, _)| args.asset == format!("builtin:{n}"));
+    let (frame, s) = if is_scene {
+        // A scene: every object rendered and composed by depth (timings summed).
+        let catalog = Catalog::load(std::slice::from_ref(&args.asset), backend.as_ref(), settings)?;
+        let t = std::time::Instant::now();
+        let frame = catalog.render_scene(&catalog.default_scene, view, Instance::default(), background)?;
+        let stats = RenderStats { total_ms: t.elapsed().as_secs_f64() * 1e3, rays: frame.depth.len() as u64, hits: frame.depth.iter().filter(|d| d.is_finite()).count() as u64, ..Default::default() };
+        (frame, stats)
+    } else {
+        let prepared = backend.prepare(load_asset(&args.asset)?)?;
+        let mut out = prepared.render(&[ViewRequest::new(view).with_background(background)], &settings)?;
+        (out.frames.remove(0), out.stats)
+    };
+    let frame = &frame;
     if let Some(dir) = args.out.parent() {
         std::fs::create_dir_all(dir)?;
     }
@@ -106,7 +120,6 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(p) = &args.alpha {
         frame.save_alpha_png(p)?;
     }
-    let s = out.stats;
     if s.hits == 0 {
         eprintln!("note: no ray hit the object; check the camera");
     }

@@ -86,7 +86,8 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
         drain: std::time::Duration::from_secs(1), start_at: None
     };
     let rt = tokio::runtime::Runtime::new()?;
-    let report = rt.block_on(replay::replay(&trace, &opts, reference.as_deref().map(|r| (r, settings))))?;
+    let reference = reference.as_deref().map(|r| replay::asset_reference(r, settings));
+    let report = rt.block_on(replay::replay(&trace, &opts, reference.as_ref().map(|r| r as replay::Reference<'_>)))?;
     if args.json { println!("{}", serde_json::to_string_pretty(&report)?) } else { print!("{report}") }
     if report.frames_decoded == 0 {
         bail!("no frames were decoded");

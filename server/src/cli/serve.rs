@@ -12,6 +12,8 @@ use crate::{
     catalog::Catalog,
     master::{
         self, MasterConfig,
+        compositor::ComposeChoice,
+        encoder::DEFAULT_BITS_PER_PIXEL,
         core::{Admission, CoreConfig, scheduler::RenderScale},
         metrics::MasterMetrics,
     },
@@ -63,12 +65,21 @@ pub struct MasterOptions {
     /// In-process render workers (threads sharing the backend).
     #[arg(long, default_value_t = 1)]
     pub workers: usize,
+    /// Where the objects of a multi-object scene are composed by depth.
+    #[arg(long, value_enum, default_value = "cpu")]
+    pub compose: ComposeChoice,
+    /// Video bits per pixel per frame: quality against bandwidth (kept within 0.3–20 Mbit/s).
+    #[arg(long, default_value_t = DEFAULT_BITS_PER_PIXEL)]
+    pub bits_per_pixel: f64,
 }
 
 impl MasterOptions {
     /// Loads the scenes on the chosen backend and builds the master's configuration.
     pub fn load(&self, name: &str) -> Result<(Arc<Catalog>, MasterConfig)> {
         let render_scale = RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?;
+        if !(0.01..=10.0).contains(&self.bits_per_pixel) {
+            anyhow::bail!("--bits-per-pixel {} should be in 0.01..=10", self.bits_per_pixel);
+        }
         let backend = make_backend(self.backend)?;
         let settings = RenderSettings { step_scale: self.step_scale, ..Default::default() };
         settings.validate().map_err(anyhow::Error::msg)?;
@@ -80,6 +91,8 @@ impl MasterOptions {
             rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
             core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching, admission: self.admission, ..Default::default() },
             workers: self.workers,
+            compose: self.compose,
+            bits_per_pixel: self.bits_per_pixel,
         };
         Ok((catalog, cfg))
     }

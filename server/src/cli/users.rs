@@ -28,6 +28,8 @@ use crate::{
     },
     master::{
         MasterConfig,
+        compositor::ComposeChoice,
+        encoder::DEFAULT_BITS_PER_PIXEL,
         core::{Admission, CoreConfig, scheduler::RenderScale},
     },
     web,
@@ -225,6 +227,8 @@ async fn session_run(
         rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
         core: CoreConfig { capacity: phases.len().max(1) as u32, render_scale: scale, batching, admission: Admission::Open, ..Default::default() },
         workers: 1,
+        compose: ComposeChoice::Cpu,
+        bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
@@ -268,6 +272,8 @@ async fn overload_run(
         rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
         core: CoreConfig { capacity: offered as u32, render_scale: scale, batching: true, admission: Admission::Load, ..Default::default() },
         workers: 1,
+        compose: ComposeChoice::Cpu,
+        bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;

@@ -14,8 +14,8 @@ use std::{
 };
 
 use anyhow::{Context, Result, bail};
-use glam::{DVec3, Mat4};
-use nephele_renderer::{Intrinsics, PreparedAsset, RenderSettings, View, ViewRequest};
+use glam::{DVec3, Mat4, Vec3};
+use nephele_renderer::{Frame, Instance, Intrinsics, PreparedAsset, RenderSettings, View, ViewRequest};
 use nephele_signaling::Mode;
 use serde::{Deserialize, Serialize};
 
@@ -220,9 +220,18 @@ impl std::fmt::Display for ReplayReport {
     }
 }
 
+/// Renders what a pose should show, for the quality comparison: `(camera, placement,
+/// background) → frame` (a direct render of the served asset or composed scene).
+pub type Reference<'a> = &'a (dyn Fn(View, Instance, Vec3) -> Result<Frame> + Sync);
+
+/// A reference that renders one prepared asset.
+pub fn asset_reference(prepared: &dyn PreparedAsset, settings: RenderSettings) -> impl Fn(View, Instance, Vec3) -> Result<Frame> + Sync + '_ {
+    move |view, instance, background| Ok(prepared.render(&[ViewRequest { view, instance, background }], &settings)?.frames.remove(0))
+}
+
 /// Replays `trace` through the server at `opts.client.signal_url`. `reference` renders the
 /// same poses directly for the quality comparison (same asset and settings as the server).
-pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn PreparedAsset, RenderSettings)>) -> Result<ReplayReport> {
+pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Reference<'_>>) -> Result<ReplayReport> {
     let mut client = StreamClient::connect(&opts.client).await?;
     let (w, h) = (opts.client.width, opts.client.height);
     let intrinsics = trace.intrinsics(w, h);
@@ -312,7 +321,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
 
     let rendered: Vec<&FrameInfo> = infos.iter().map(|(i, _)| i).filter(|i| !i.reused).collect();
     let mut quality = Vec::new();
-    if let (Some((prepared, settings)), true) = (reference, opts.quality_every > 0) {
+    if let (Some(reference), true) = (reference, opts.quality_every > 0) {
         let background = background_of(opts.client.mode);
         for f in frames.iter().step_by(opts.quality_every) {
             let Some((_, sent)) = f.pose_seq.and_then(|s| sent_at.get(&s)) else { continue };
@@ -321,8 +330,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<(&dyn
             }
             // The same validation (and f32 repair) the master applied to this message.
             let (view, instance) = sent.view((w, h)).map_err(|e| anyhow::anyhow!("{e}"))?;
-            let out = prepared.render(&[ViewRequest { view, instance, background }], &settings)?;
-            let direct = &out.frames[0];
+            let direct = reference(view, instance, background)?;
             let psnr_db = psnr_rgb(&direct.rgba, &f.rgba);
             let key_iou = (opts.client.mode == Mode::Ar).then(|| key_iou(&direct.rgba, &f.rgba));
             quality.push(QualitySample { pose_seq: f.pose_seq.unwrap_or(0), psnr_db, key_iou });

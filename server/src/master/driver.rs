@@ -26,6 +26,7 @@ use tokio::sync::mpsc;
 use tokio_tungstenite::tungstenite::Message;
 
 use super::{
+    compositor::{ComposeChoice, Compositor},
     core::{CoreConfig, EncodeJob, Input, JoinRequest, MasterCore, Output, task::TaskResult},
     encoder::{EncoderConfig, FrameEncoder, upscale_bilinear},
     metrics::MasterMetrics,
@@ -52,6 +53,10 @@ pub struct MasterConfig {
     pub core: CoreConfig,
     /// In-process render workers.
     pub workers: usize,
+    /// Where multi-object frames are composed.
+    pub compose: ComposeChoice,
+    /// Video bits per pixel per frame (quality against bandwidth).
+    pub bits_per_pixel: f64,
 }
 
 /// Everything the driver loop hears.
@@ -105,6 +110,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
     })
     .context("starting render workers")?;
 
+    let compositor = Arc::new(Compositor::new(cfg.compose).context("creating the compositor")?);
     let mut core = MasterCore::new(cfg.core.clone(), catalog.infos(), metrics, Instant::now());
     let mut sessions: HashMap<String, SessionEdge> = HashMap::new();
     let mut inputs: Vec<Input> = Vec::new();
@@ -112,7 +118,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
         let wake = loop {
             match core.poll_output() {
                 Output::Timeout(t) => break t,
-                out => execute(out, &mut sessions, &workers, &api, &to_signal, &events_tx, &mut inputs),
+                out => execute(out, &mut sessions, &workers, &api, &to_signal, &events_tx, &compositor, cfg.bits_per_pixel, &mut inputs),
             }
         };
         if let Some(input) = inputs.pop() {
@@ -124,7 +130,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
                 let Some(ev) = ev else { bail!("the master's event channel closed") };
                 let input = match ev {
                     Event::Fatal(why) => bail!("{why}"),
-                    other => translate(other, &mut sessions, &events_tx),
+                    other => translate(other, &mut sessions, &events_tx, &compositor),
                 };
                 if let Some(input) = input {
                     core.handle_input(Instant::now(), input);
@@ -136,7 +142,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
 }
 
 /// An event as the core's input (or handled here: encoded frames go on to the peer).
-fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mpsc::UnboundedSender<Event>) -> Option<Input> {
+fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mpsc::UnboundedSender<Event>, compositor: &Arc<Compositor>) -> Option<Input> {
     match ev {
         Event::Fatal(_) => None,
         Event::Signal(msg) => match msg {
@@ -182,7 +188,7 @@ fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mp
                 return Some(Input::PeerClosed { session, reason: result.err().unwrap_or_default() });
             };
             edge.encoder = Some(*encoder);
-            next_encode(edge, events);
+            next_encode(edge, events, compositor);
             match result {
                 Ok((access_unit, times)) => {
                     let now = Instant::now();
@@ -219,6 +225,8 @@ fn execute(
     api: &Arc<webrtc::api::API>,
     to_signal: &mpsc::UnboundedSender<ToSignal>,
     events: &mpsc::UnboundedSender<Event>,
+    compositor: &Arc<Compositor>,
+    bits_per_pixel: f64,
     inputs: &mut Vec<Input>,
 ) {
     match out {
@@ -227,7 +235,7 @@ fn execute(
             let edge = SessionEdge {
                 commands: tx,
                 encoder: None,
-                encoder_config: EncoderConfig::new(req.width, req.height, req.fps),
+                encoder_config: EncoderConfig::with_bits_per_pixel(req.width, req.height, req.fps, bits_per_pixel),
                 encoder_made: false,
                 waiting: Default::default(),
                 started: Instant::now(),
@@ -259,7 +267,7 @@ fn execute(
         Output::Encode(job) => {
             let Some(edge) = sessions.get_mut(&job.session) else { return };
             edge.waiting.push_back(job);
-            next_encode(edge, events);
+            next_encode(edge, events, compositor);
         }
         Output::Heartbeat { sessions: count, free_rays_per_s, saturated } => {
             let _ = to_signal.send(ToSignal::Heartbeat { sessions: count, free_rays_per_s, saturated });
@@ -269,20 +277,20 @@ fn execute(
 }
 
 /// Starts the session's next waiting frame if its encoder is home (or not made yet).
-fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>) {
+fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>, compositor: &Arc<Compositor>) {
     if edge.encoder.is_none() && edge.encoder_made {
         return; // busy with the previous frame
     }
     let Some(job) = edge.waiting.pop_front() else { return };
     let encoder = edge.encoder.take();
     edge.encoder_made = true;
-    let (events, started, config) = (events.clone(), edge.started, edge.encoder_config);
+    let (events, started, config, compositor) = (events.clone(), edge.started, edge.encoder_config, Arc::clone(compositor));
     tokio::task::spawn_blocking(move || {
         let (session, frame) = (job.session.clone(), job.frame);
         let made = encoder.map_or_else(|| FrameEncoder::new(config).map_err(|e| format!("cannot create the encoder: {e}")), Ok);
         let (encoder, result) = match made {
             Ok(encoder) => {
-                let (encoder, result) = encode(encoder, &job, started);
+                let (encoder, result) = encode(encoder, &job, started, &compositor);
                 (Some(Box::new(encoder)), result)
             }
             Err(e) => (None, Err(e)),
@@ -291,11 +299,27 @@ fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>) {
     });
 }
 
-/// Blocking: upscale to the stream size if needed, convert and encode.
-fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant) -> (FrameEncoder, Result<(Bytes, FrameTimes), String>) {
+/// Blocking: compose the objects if several, upscale to the stream size if needed, convert
+/// and encode.
+fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, compositor: &Compositor) -> (FrameEncoder, Result<(Bytes, FrameTimes), String>) {
     let _span = tracing::trace_span!("frame", session = %job.session, frame = job.frame, pose = job.pose_seq).entered();
     let (w, h) = (job.width, job.height);
-    let p = &job.pixels;
+    let t_compose = Instant::now();
+    let composed;
+    let p = match job.compose_over {
+        Some(background) if job.parts.len() > 1 => match compositor.compose(&job.parts, background) {
+            Ok(frame) => {
+                composed = frame;
+                &composed
+            }
+            Err(e) => return (encoder, Err(format!("compose: {e}"))),
+        },
+        _ => match job.parts.first() {
+            Some(p) => p.as_ref(),
+            None => return (encoder, Err("a frame with no rendered parts (internal error)".into())),
+        },
+    };
+    let compose_ms = t_compose.elapsed().as_secs_f64() * 1e3;
     let upscaled;
     let rgba: &[u8] = if (p.width, p.height) == (w, h) {
         &p.rgba
@@ -310,7 +334,7 @@ fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant) ->
     let result = encoder
         .encode_at(rgba, w, h, u64::from(job.pose_seq), t_ms)
         .map(|f| {
-            let times = FrameTimes { render_ms: 0.0, convert_ms: f.convert_ms, encode_ms: f.encode_ms, send_ms: 0.0, bytes: f.annex_b.len(), idr: f.is_idr };
+            let times = FrameTimes { render_ms: 0.0, compose_ms, convert_ms: f.convert_ms, encode_ms: f.encode_ms, send_ms: 0.0, bytes: f.annex_b.len(), idr: f.is_idr };
             (Bytes::from(f.annex_b), times)
         })
         .map_err(|e| format!("encode: {e}"));

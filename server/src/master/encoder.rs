@@ -60,6 +60,9 @@ pub const ENCODER_THREADS: u16 = 2;
 /// Largest slice NAL, bytes: fits one RTP packet (MTU 1500 minus IP/UDP/SRTP/RTP headers).
 pub const MAX_SLICE_BYTES: u32 = 1200;
 
+/// Bits per pixel per frame a stream gets by default (0.15: 2.3 Mbit/s at 640×480, 50 fps).
+pub const DEFAULT_BITS_PER_PIXEL: f64 = 0.15;
+
 /// What to encode. `width`/`height` are the rendered (unpadded) size.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EncoderConfig {
@@ -72,9 +75,14 @@ pub struct EncoderConfig {
 }
 
 impl EncoderConfig {
-    /// ~0.15 bit per pixel per frame, clamped to 300 kbps..20 Mbps; an IDR every 10 s.
+    /// [`DEFAULT_BITS_PER_PIXEL`] per frame, clamped to 300 kbps..20 Mbps; an IDR every 10 s.
     pub fn new(width: u32, height: u32, fps: u32) -> Self {
-        let bits = 0.15 * f64::from(width) * f64::from(height) * f64::from(fps);
+        Self::with_bits_per_pixel(width, height, fps, DEFAULT_BITS_PER_PIXEL)
+    }
+
+    /// `bits_per_pixel` per frame (the quality/bandwidth knob), clamped to 300 kbps..20 Mbps.
+    pub fn with_bits_per_pixel(width: u32, height: u32, fps: u32, bits_per_pixel: f64) -> Self {
+        let bits = bits_per_pixel * f64::from(width) * f64::from(height) * f64::from(fps);
         Self {
             width,
             height,

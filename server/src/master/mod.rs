@@ -4,10 +4,12 @@
 //! - [`core`]: the sans-IO heart — sessions, admission, NEPHELE's scheduler (Algorithm 1),
 //!   render tasks, the history table, frame rules; tested on simulated time.
 //! - the edge drivers around it: [`driver`] (the event loop and signaling link), [`peer`]
-//!   (one WebRTC connection per client), [`encoder`] (RGB → I420 → H.264 per session),
+//!   (one WebRTC connection per client), [`encoder`] (RGB → I420 → H.264 per session,
+//!   after [`compositor`] has composed a multi-object frame by depth),
 //!   [`workers`] (in-process render threads);
 //! - [`metrics`]: what `GET /metrics` shows.
 
+pub mod compositor;
 pub mod core;
 pub mod driver;
 pub mod encoder;

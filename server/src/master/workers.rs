@@ -83,13 +83,13 @@ fn worker_loop(
 
 /// Renders a whole task in one call of the backend.
 pub fn render_task(catalog: &Catalog, task: &RenderTask) -> TaskResult {
-    let _span = tracing::debug_span!("render_task", task = %task.id, scene = %task.scene, views = task.views.len(), class = ?task.class).entered();
+    let _span = tracing::debug_span!("render_task", task = %task.id, asset = %task.asset, views = task.views.len(), class = ?task.class).entered();
     let started = Instant::now();
-    let frames = match catalog.scenes.get(&task.scene) {
-        None => Err(format!("this worker has no scene {:?}", task.scene)),
-        Some(scene) => {
+    let frames = match catalog.assets.get(&task.asset) {
+        None => Err(format!("this worker has no asset {:?}", task.asset)),
+        Some(asset) => {
             let requests = task.requests();
-            match std::panic::catch_unwind(AssertUnwindSafe(|| scene.prepared.render(&requests, &catalog.settings))) {
+            match std::panic::catch_unwind(AssertUnwindSafe(|| asset.prepared.render(&requests, &catalog.settings))) {
                 Ok(Ok(out)) => Ok(out.frames.into_iter().map(Arc::new).collect()),
                 Ok(Err(e)) => Err(e.to_string()),
                 Err(_) => Err("the renderer panicked on this task".into()),
@@ -99,17 +99,18 @@ pub fn render_task(catalog: &Catalog, task: &RenderTask) -> TaskResult {
     TaskResult { id: task.id, frames, render_ms: started.elapsed().as_secs_f64() * 1e3 }
 }
 
-/// Rays per second of one warm render of each scene from a typical viewpoint.
-fn calibrate(catalog: &Catalog) -> f64 {
+/// Rays per second of one warm render of each asset from a typical viewpoint.
+pub fn calibrate(catalog: &Catalog) -> f64 {
     let (mut rays, mut seconds) = (0.0, 0.0);
-    for scene in catalog.scenes.values() {
+    for asset in catalog.assets.values() {
+        let b = asset.prepared.asset().bounds;
+        let (center, radius) = (((b.min + b.max) * 0.5).as_dvec3(), f64::from((b.max - b.min).length() * 0.5));
         let k = Intrinsics::from_fov_x(CALIBRATION_EDGE, CALIBRATION_EDGE, 0.69);
-        let distance = 2.5 * f64::from(scene.info.radius.max(1e-3));
-        let view = View::orbit(scene.info.center.as_dvec3(), distance, 35.0, 25.0, k);
+        let view = View::orbit(center, 2.5 * radius.max(1e-3), 35.0, 25.0, k);
         let request = [ViewRequest::new(view)];
         for round in 0..2 {
             let t = Instant::now();
-            if scene.prepared.render(&request, &catalog.settings).is_err() {
+            if asset.prepared.render(&request, &catalog.settings).is_err() {
                 break;
             }
             if round == 1 {

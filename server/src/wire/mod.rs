@@ -232,7 +232,11 @@ pub struct FrameInfo {
 /// Where one frame's time went after it left the queue, and what it weighed.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct FrameTimes {
+    /// The longest render task of the frame's objects.
     pub render_ms: f64,
+    /// Depth composition of several objects (0 for one).
+    #[serde(default)]
+    pub compose_ms: f64,
     /// RGBA → I420.
     pub convert_ms: f64,
     pub encode_ms: f64,

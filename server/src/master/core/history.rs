@@ -1,5 +1,5 @@
 //! The history table of shared rendering (NEPHELE §6.2.1): identical requests are rendered
-//! once. A request is identical when it asks for the same scene object, over the same
+//! once. A request is identical when it asks for the same asset, over the same
 //! background, at the same render size and intrinsics, with the object placed the same way,
 //! and a camera pose equal within [`POSE_TOLERANCE`]: every entry of the camera-to-world
 //! rotation within 1e-6, and the camera position within 1e-6 scene units per unit of its
@@ -25,7 +25,7 @@ pub const HISTORY_BYTES: usize = 64 << 20;
 /// What makes two render requests the same.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RequestKey {
-    pub scene: String,
+    pub asset: String,
     pub intrinsics: Intrinsics,
     pub background: Vec3,
     pub instance: Instance,
@@ -35,7 +35,7 @@ pub struct RequestKey {
 impl RequestKey {
     /// Same request within [`POSE_TOLERANCE`].
     pub fn matches(&self, other: &Self) -> bool {
-        if self.scene != other.scene
+        if self.asset != other.asset
             || self.intrinsics != other.intrinsics
             || self.background != other.background
             || self.instance != other.instance
@@ -95,9 +95,9 @@ impl History {
         }
     }
 
-    /// Forgets every frame of `scene`.
-    pub fn forget_scene(&mut self, scene: &str) {
-        self.entries.retain(|(k, _)| k.scene != scene);
+    /// Forgets every frame of `asset`.
+    pub fn forget_asset(&mut self, asset: &str) {
+        self.entries.retain(|(k, _)| k.asset != asset);
         self.bytes = self.entries.iter().map(|(_, f)| frame_bytes(f)).sum();
     }
 
@@ -119,7 +119,7 @@ mod tests {
     fn key(azimuth_deg: f64, distance: f64) -> RequestKey {
         let view = View::orbit(DVec3::ZERO, distance, azimuth_deg, 20.0, Intrinsics::from_fov_x(64, 48, 0.8));
         RequestKey {
-            scene: "lego".into(),
+            asset: "lego".into(),
             intrinsics: view.intrinsics,
             background: Vec3::ONE,
             instance: Instance::default(),
@@ -148,7 +148,7 @@ mod tests {
         assert!(!far.matches(&moved));
         // Anything else differs → no match.
         let mut other = a.clone();
-        other.scene = "trio".into();
+        other.asset = "trio".into();
         assert!(!a.matches(&other));
         let mut other = a.clone();
         other.background = Vec3::new(0.0, 1.0, 0.0);
@@ -184,7 +184,7 @@ mod tests {
         // Bounded by bytes: one huge frame pushes out everything older.
         h.insert(key(500.0, 4.0), frame(2, HISTORY_BYTES / 8 + 1));
         assert_eq!(h.len(), 1);
-        h.forget_scene("lego");
+        h.forget_asset("lego");
         assert!(h.is_empty());
     }
 }

@@ -32,7 +32,7 @@ use std::{
 };
 
 use glam::Vec3;
-use nephele_renderer::Frame;
+use nephele_renderer::{Frame, Instance};
 use nephele_signaling::Mode;
 
 use self::{
@@ -52,14 +52,38 @@ pub const HEARTBEAT_EVERY: Duration = Duration::from_secs(5);
 /// A camera that moved within this time counts as moving for the fair scale.
 pub const ACTIVE_WINDOW: Duration = Duration::from_secs(1);
 
-/// What the core knows of a scene (not its pixels: those live with the workers).
+/// What the core knows of a scene (not its pixels: those live with the workers): one
+/// object, or several placed in one world and composed by depth.
 #[derive(Debug, Clone)]
 pub struct SceneInfo {
     pub name: String,
-    /// Centre and radius of the bounding sphere, scene units (identity instance).
+    /// Centre and radius of the bounding sphere of every object, scene units.
     pub center: Vec3,
     pub radius: f32,
+    /// Behind everything in viewer mode.
+    pub background: Vec3,
+    pub objects: Vec<ObjectInfo>,
+}
+
+/// One object of a scene: an asset (by name) and where it stands.
+#[derive(Debug, Clone)]
+pub struct ObjectInfo {
+    pub asset: String,
+    pub instance: Instance,
     pub proxy: Proxy,
+}
+
+impl SceneInfo {
+    /// A scene of one asset at the origin, over white.
+    pub fn single(name: &str, asset: &str, proxy: Proxy, center: Vec3, radius: f32) -> Self {
+        let objects = vec![ObjectInfo { asset: asset.into(), instance: Instance::default(), proxy }];
+        Self { name: name.into(), center, radius, background: Vec3::ONE, objects }
+    }
+
+    /// Several objects need composing; one renders straight over the background.
+    pub fn composed(&self) -> bool {
+        self.objects.len() > 1
+    }
 }
 
 /// Whether joins are checked against the measured load.
@@ -141,8 +165,10 @@ pub struct EncodeJob {
     pub frame: u64,
     pub pose_seq: u32,
     pub idr: bool,
-    /// At the render scale; the edge upscales to `width`×`height` if smaller.
-    pub pixels: Arc<Frame>,
+    /// At the render scale, one per scene object; the edge composes them by depth over
+    /// `compose_over` when there are several, then upscales to `width`×`height`.
+    pub parts: Vec<Arc<Frame>>,
+    pub compose_over: Option<Vec3>,
     pub width: u32,
     pub height: u32,
     /// When the frame started, for the encoder's timestamps.
@@ -172,9 +198,19 @@ pub enum Output {
 #[derive(Debug)]
 struct FrameInFlight {
     job: FrameJob,
+    /// One per scene object, filled as renders (or reuses) come in.
+    parts: Vec<Option<Arc<Frame>>>,
+    /// Longest render task of its parts, ms.
     render_ms: f64,
     batch_views: u32,
+    /// No part was rendered for it.
     reused: bool,
+}
+
+impl FrameInFlight {
+    fn complete(&self) -> bool {
+        self.parts.iter().all(Option::is_some)
+    }
 }
 
 #[derive(Debug)]
@@ -189,8 +225,8 @@ struct User {
     loaded_tasks: u32,
     /// Render scale of a moving camera (the scheduler's choice).
     scale: f32,
-    /// The user's own last render, for a still camera.
-    last_frame: Option<(RequestKey, Arc<Frame>)>,
+    /// The user's own last render of each scene object, for a still camera.
+    last_parts: Vec<Option<(RequestKey, Arc<Frame>)>>,
     /// Frames started and not yet sent (at most two: one rendering, one encoding).
     frames: VecDeque<FrameInFlight>,
     /// Currently counted as starved (for the starvation-event metric).
@@ -225,7 +261,7 @@ struct TaskInFlight {
 /// The master's state machine. See the module docs.
 pub struct MasterCore {
     cfg: CoreConfig,
-    scenes: BTreeMap<String, SceneInfo>,
+    scenes: BTreeMap<String, Arc<SceneInfo>>,
     users: BTreeMap<String, User>,
     workers: BTreeMap<WorkerId, Worker>,
     /// Formed tasks waiting for a worker slot, with their history keys.
@@ -247,7 +283,7 @@ impl MasterCore {
     pub fn new(cfg: CoreConfig, scenes: Vec<SceneInfo>, metrics: Arc<MasterMetrics>, now: Instant) -> Self {
         Self {
             cfg,
-            scenes: scenes.into_iter().map(|s| (s.name.clone(), s)).collect(),
+            scenes: scenes.into_iter().map(|s| (s.name.clone(), Arc::new(s))).collect(),
             users: BTreeMap::new(),
             workers: BTreeMap::new(),
             queue: VecDeque::new(),
@@ -397,14 +433,17 @@ impl MasterCore {
                     RenderScale::Auto { min, .. } => self.initial_scale(&req, min),
                 };
                 let user = User {
-                    background: background_of(req.mode),
+                    background: match req.mode {
+                        Mode::Ar => background_of(Mode::Ar),
+                        _ => self.scenes.get(&req.scene).map_or(background_of(req.mode), |s| s.background),
+                    },
                     session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)),
                     clock: UserClock::new(req.fps, now),
                     joined_at: now,
                     connected: false,
                     loaded_tasks: 0,
                     scale,
-                    last_frame: None,
+                    last_parts: vec![None; self.scenes.get(&req.scene).map_or(1, |s| s.objects.len())],
                     frames: VecDeque::new(),
                     starved: false,
                     req: req.clone(),
@@ -681,68 +720,66 @@ impl MasterCore {
         }
         sort_candidates(&mut candidates);
         let n = round_size(&candidates, rays_per_s);
-        // Views to render, grouped into tasks by scene (batching) or by user.
+        // Views to render, grouped into tasks by asset (batching) or by user and object.
         let mut groups: BTreeMap<String, Vec<(TaskView, RequestKey)>> = BTreeMap::new();
         for c in &candidates[..n] {
             let u = self.users.get_mut(&c.session).expect("a candidate");
+            let Some(scene) = self.scenes.get(&u.req.scene).cloned() else { continue };
             let Some(job) = u.session.poll_frame(now, u.scale) else { continue };
             u.clock.waiting_since = None;
             let mut view = job.pose.view;
             if job.render_scale < 1.0 {
                 view.intrinsics = view.intrinsics.scaled(job.render_scale);
             }
-            let key = RequestKey {
-                scene: u.req.scene.clone(),
-                intrinsics: view.intrinsics,
-                background: u.background,
-                instance: job.pose.instance,
-                world_from_camera: view.world_from_camera,
-            };
-            let own = u.last_frame.as_ref().filter(|(k, _)| job.same_as_previous && k.matches(&key)).map(|(_, f)| Arc::clone(f));
-            let reused = own.or_else(|| self.history.lookup(&key));
-            if let Some(pixels) = reused {
-                self.metrics.history_hits.inc();
-                u.frames.push_back(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
-                u.session.rendered(job.frame);
-                let (w, h) = (u.req.width, u.req.height);
-                self.outputs.push_back(Output::Encode(EncodeJob {
-                    session: c.session.clone(),
-                    frame: job.frame,
-                    pose_seq: job.pose.seq,
-                    idr: job.idr,
-                    pixels,
-                    width: w,
-                    height: h,
-                    started_at: now,
-                }));
-                continue;
-            }
-            let tag = ViewTag { session: c.session.clone(), frame: job.frame };
-            // An identical view already on a worker or in the queue: ride along.
-            let riding = self.in_flight.values_mut().flat_map(|t| t.views.iter_mut()).find(|(k, _)| k.matches(&key)).map(|(_, tags)| tags).or_else(|| {
-                self.queue.iter_mut().flat_map(|(t, keys)| t.views.iter_mut().zip(keys.iter())).find(|(_, k)| k.matches(&key)).map(|(v, _)| &mut v.tags)
-            });
-            if let Some(tags) = riding {
-                tags.push(tag);
-                u.loaded_tasks += 1;
-                u.frames.push_back(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: true });
-                self.metrics.history_hits.inc();
-                self.history.hits += 1;
-                continue;
-            }
-            let group = if self.cfg.batching { u.req.scene.clone() } else { c.session.clone() };
-            let views = groups.entry(group).or_default();
-            // Identical requests in one round are rendered once.
-            let shared = views.iter_mut().find(|(_, k)| k.matches(&key));
-            u.frames.push_back(FrameInFlight { job, render_ms: 0.0, batch_views: 0, reused: shared.is_some() });
-            match shared {
-                Some((v, _)) => {
-                    v.tags.push(tag);
+            // Several objects render over black (premultiplied) and are composed later.
+            let render_background = if scene.composed() { Vec3::ZERO } else { u.background };
+            let mut fl = FrameInFlight { job, parts: vec![None; scene.objects.len()], render_ms: 0.0, batch_views: 0, reused: true };
+            for (part, object) in scene.objects.iter().enumerate() {
+                let instance = job.pose.instance.then_inside(&object.instance);
+                let key = RequestKey {
+                    asset: object.asset.clone(),
+                    intrinsics: view.intrinsics,
+                    background: render_background,
+                    instance,
+                    world_from_camera: view.world_from_camera,
+                };
+                let own = u.last_parts.get(part).and_then(Option::as_ref).filter(|(k, _)| job.same_as_previous && k.matches(&key)).map(|(_, f)| Arc::clone(f));
+                if let Some(pixels) = own.or_else(|| self.history.lookup(&key)) {
+                    self.metrics.history_hits.inc();
+                    fl.parts[part] = Some(pixels);
+                    continue;
+                }
+                let tag = ViewTag { session: c.session.clone(), frame: job.frame, part: part as u32 };
+                // An identical view already on a worker or in the queue: ride along.
+                let riding = self.in_flight.values_mut().flat_map(|t| t.views.iter_mut()).find(|(k, _)| k.matches(&key)).map(|(_, tags)| tags).or_else(|| {
+                    self.queue.iter_mut().flat_map(|(t, keys)| t.views.iter_mut().zip(keys.iter())).find(|(_, k)| k.matches(&key)).map(|(v, _)| &mut v.tags)
+                });
+                if let Some(tags) = riding {
+                    tags.push(tag);
+                    u.loaded_tasks += 1;
                     self.metrics.history_hits.inc();
                     self.history.hits += 1;
+                    continue;
                 }
-                None => views.push((TaskView { view, instance: job.pose.instance, background: u.background, render_scale: job.render_scale, tags: vec![tag] }, key)),
+                let group = if self.cfg.batching { object.asset.clone() } else { format!("{}/{part}", c.session) };
+                let views = groups.entry(group).or_default();
+                // Identical requests in one round are rendered once.
+                match views.iter_mut().find(|(_, k)| k.matches(&key)) {
+                    Some((v, _)) => {
+                        v.tags.push(tag);
+                        self.metrics.history_hits.inc();
+                        self.history.hits += 1;
+                    }
+                    None => {
+                        fl.reused = false;
+                        let task_view = TaskView { view, instance, background: render_background, render_scale: job.render_scale, tags: vec![tag] };
+                        views.push((task_view, key));
+                    }
+                }
             }
+            let frame = job.frame;
+            u.frames.push_back(fl);
+            self.finish_if_complete(&c.session, frame);
         }
         let mut tasks: Vec<(RenderTask, Vec<RequestKey>)> = groups.into_values().map(|views| self.make_task(views)).collect();
         // Shared tasks first, then heavy before light.
@@ -759,21 +796,47 @@ impl MasterCore {
     }
 
     fn make_task(&mut self, views: Vec<(TaskView, RequestKey)>) -> (RenderTask, Vec<RequestKey>) {
-        let scene_name = views[0].1.scene.clone();
-        let scene = &self.scenes[&scene_name];
+        let asset = views[0].1.asset.clone();
+        let proxy = self.scenes.values().flat_map(|s| &s.objects).find(|o| o.asset == asset).map(|o| o.proxy.clone());
         let (mut est_pixels, mut min_depth, mut rays, mut radius) = (0u64, f64::INFINITY, 0u64, 0.0f64);
         for (v, _) in &views {
-            let e = estimate(&scene.proxy, &v.view, &v.instance);
-            est_pixels += e.n_pixel;
-            min_depth = min_depth.min(e.avg_depth);
+            if let Some(proxy) = &proxy {
+                let e = estimate(proxy, &v.view, &v.instance);
+                est_pixels += e.n_pixel;
+                min_depth = min_depth.min(e.avg_depth);
+                radius = radius.max(f64::from(proxy.bound_radius) * v.instance.scale);
+            }
             rays += v.view.intrinsics.pixel_count();
-            radius = radius.max(f64::from(scene.proxy.bound_radius) * v.instance.scale);
         }
         let class = classify(est_pixels, min_depth, radius);
         let id = TaskId(self.next_task);
         self.next_task += 1;
         let (views, keys): (Vec<TaskView>, Vec<RequestKey>) = views.into_iter().unzip();
-        (RenderTask { id, scene: scene_name, views, class, rays, est_pixels }, keys)
+        (RenderTask { id, asset, views, class, rays, est_pixels }, keys)
+    }
+
+    /// Once every part of a user's frame is there: encode it.
+    fn finish_if_complete(&mut self, session: &str, frame: u64) {
+        let Some(u) = self.users.get_mut(session) else { return };
+        let Some(fl) = u.frames.iter().find(|f| f.job.frame == frame) else { return };
+        if !fl.complete() {
+            return;
+        }
+        let composed = fl.parts.len() > 1;
+        let job = fl.job;
+        let parts: Vec<Arc<Frame>> = fl.parts.iter().flatten().cloned().collect();
+        u.session.rendered(frame);
+        self.outputs.push_back(Output::Encode(EncodeJob {
+            session: session.into(),
+            frame,
+            pose_seq: job.pose.seq,
+            idr: job.idr,
+            parts,
+            compose_over: composed.then_some(u.background),
+            width: u.req.width,
+            height: u.req.height,
+            started_at: job.started_at,
+        }));
     }
 
     // ---- results ----
@@ -804,28 +867,22 @@ impl MasterCore {
             for tag in tags {
                 let Some(u) = self.users.get_mut(&tag.session) else { continue };
                 u.loaded_tasks = u.loaded_tasks.saturating_sub(1);
-                let Some(i) = u.frames.iter().position(|f| f.job.frame == tag.frame) else { continue };
+                let Some(at) = u.frames.iter().position(|f| f.job.frame == tag.frame) else { continue };
                 match &frame {
                     Some(pixels) => {
-                        let fl = &mut u.frames[i];
-                        fl.render_ms = result.render_ms;
-                        fl.batch_views = n_views as u32;
-                        let job = fl.job;
-                        u.last_frame = Some((key.clone(), Arc::clone(pixels)));
-                        u.session.rendered(job.frame);
-                        self.outputs.push_back(Output::Encode(EncodeJob {
-                            session: tag.session.clone(),
-                            frame: job.frame,
-                            pose_seq: job.pose.seq,
-                            idr: job.idr,
-                            pixels: Arc::clone(pixels),
-                            width: u.req.width,
-                            height: u.req.height,
-                            started_at: job.started_at,
-                        }));
+                        let fl = &mut u.frames[at];
+                        fl.render_ms = fl.render_ms.max(result.render_ms);
+                        fl.batch_views = fl.batch_views.max(n_views as u32);
+                        if let Some(slot) = fl.parts.get_mut(tag.part as usize) {
+                            *slot = Some(Arc::clone(pixels));
+                        }
+                        if let Some(last) = u.last_parts.get_mut(tag.part as usize) {
+                            *last = Some((key.clone(), Arc::clone(pixels)));
+                        }
+                        self.finish_if_complete(&tag.session, tag.frame);
                     }
                     None => {
-                        u.frames.remove(i);
+                        u.frames.remove(at);
                         u.session.frame_failed(tag.frame);
                         self.metrics.frames_failed.inc();
                         let message = frames.as_ref().err().cloned().unwrap_or_default();

@@ -2,16 +2,18 @@
 //! is one scene object and a list of views, each tagged with the user and frame it belongs
 //! to; a worker renders the whole list in one pass (one parallel pass on the CPU, one
 //! dispatch on the GPU) and answers with RGBA (alpha = object opacity) plus depth per view.
-//! One user's frame may need several tasks (later: one per object of a composed scene); one
-//! task may serve several users (shared tasks, §6.2.1).
+//! One user's frame may need several tasks (one per object of a composed scene); one task
+//! may serve several users (shared tasks, §6.2.1). Tasks and results cross process
+//! boundaries (render workers over NATS), so they serialise.
 
 use std::sync::Arc;
 
 use glam::Vec3;
 use nephele_renderer::{Frame, Instance, View, ViewRequest};
+use serde::{Deserialize, Serialize};
 
 /// Names a task for the life of a master.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 pub struct TaskId(pub u64);
 
 impl std::fmt::Display for TaskId {
@@ -25,22 +27,25 @@ impl std::fmt::Display for TaskId {
 pub struct WorkerId(pub String);
 
 /// Heavy tasks (many pixels, or a close object) and light ones ([`super::estimate`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum TaskClass {
     Heavy,
     Light,
 }
 
-/// The user frames one rendered view answers: usually one, several when identical
-/// requests of different users were merged.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// The user frame (and which of its scene's objects) one rendered view answers: usually
+/// one, several when identical requests of different users were merged.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ViewTag {
     pub session: String,
     pub frame: u64,
+    /// Index of the scene object (the layer of the composition).
+    pub part: u32,
 }
 
 /// One view of a task.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TaskView {
     /// Camera with intrinsics already at the render scale.
     pub view: View,
@@ -54,11 +59,12 @@ pub struct TaskView {
     pub tags: Vec<ViewTag>,
 }
 
-/// One scene object and the views to render of it.
-#[derive(Debug, Clone, PartialEq)]
+/// One asset and the views to render of it (each view with its own placement).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RenderTask {
     pub id: TaskId,
-    pub scene: String,
+    /// The asset's name in the catalogues of master and workers.
+    pub asset: String,
     pub views: Vec<TaskView>,
     pub class: TaskClass,
     /// Primary rays (pixels) of all views.

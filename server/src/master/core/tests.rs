@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 
 use glam::{DVec3, Vec3};
-use nephele_renderer::{Intrinsics, View};
+use nephele_renderer::{Instance, Intrinsics, View};
 
 use super::*;
 use crate::wire::PoseMessage;
@@ -30,7 +30,15 @@ fn proxy() -> Proxy {
 }
 
 fn scenes() -> Vec<SceneInfo> {
-    ["lego", "trio"].iter().map(|n| SceneInfo { name: (*n).into(), center: Vec3::ZERO, radius: 1.0, proxy: proxy() }).collect()
+    let mut scenes: Vec<SceneInfo> = ["lego", "trio"].iter().map(|n| SceneInfo::single(n, n, proxy(), Vec3::ZERO, 1.0)).collect();
+    // Two objects, composed by depth.
+    let place = |x: f64| Instance { translation: DVec3::new(x, 0.0, 0.0), scale: 0.5, ..Instance::default() };
+    let objects = vec![
+        ObjectInfo { asset: "lego".into(), instance: place(-0.5), proxy: proxy() },
+        ObjectInfo { asset: "trio".into(), instance: place(0.5), proxy: proxy() },
+    ];
+    scenes.push(SceneInfo { name: "duo".into(), center: Vec3::ZERO, radius: 1.5, background: Vec3::new(0.1, 0.2, 0.3), objects });
+    scenes
 }
 
 struct SimUser {
@@ -265,11 +273,11 @@ fn users_of_one_scene_share_a_task_per_round_unless_batching_is_off() {
         assert!(sim.join("e", "trio", 160, 120, 25));
         sim.run_until(3000);
         let most = sim.tasks.iter().map(|t| t.views.len()).max().unwrap();
-        let mixed = sim.tasks.iter().any(|t| t.views.iter().map(|v| &v.tags[0].session).collect::<std::collections::BTreeSet<_>>().len() > 1 && t.scene == "trio");
+        let mixed = sim.tasks.iter().any(|t| t.views.iter().map(|v| &v.tags[0].session).collect::<std::collections::BTreeSet<_>>().len() > 1 && t.asset == "trio");
         assert!(!mixed, "a trio task holds another user's view");
         if batching {
             assert_eq!(most, 4, "the four lego users share tasks");
-            assert!(sim.tasks.iter().all(|t| t.views.iter().all(|v| (t.scene == "trio") == (v.tags[0].session == "e"))));
+            assert!(sim.tasks.iter().all(|t| t.views.iter().all(|v| (t.asset == "trio") == (v.tags[0].session == "e"))));
         } else {
             assert_eq!(most, 1, "one view per task without batching");
         }
@@ -372,7 +380,7 @@ fn a_user_leaving_mid_task_cancels_only_its_own_work() {
     assert!(sim.join("a", "lego", 160, 120, 25));
     assert!(sim.join("b", "trio", 160, 120, 25));
     sim.run_until(30);
-    let a_tasks: Vec<TaskId> = sim.tasks.iter().filter(|t| t.scene == "lego").map(|t| t.id).collect();
+    let a_tasks: Vec<TaskId> = sim.tasks.iter().filter(|t| t.asset == "lego").map(|t| t.id).collect();
     assert!(!a_tasks.is_empty());
     sim.leave("a");
     assert!(sim.cancelled.contains(&a_tasks[a_tasks.len() - 1]), "{:?} {:?}", sim.cancelled, a_tasks);
@@ -415,7 +423,7 @@ fn identical_requests_are_rendered_once() {
     assert!(reused * 10 >= frames * 4, "{reused} of {frames} frames reused");
     // A hit is the same frame: both users encode the very same pixels.
     let same = sim.encode_jobs.iter().filter(|j| j.session == "a").any(|ja| {
-        sim.encode_jobs.iter().any(|jb| jb.session == "b" && ja.pose_seq == jb.pose_seq && Arc::ptr_eq(&ja.pixels, &jb.pixels))
+        sim.encode_jobs.iter().any(|jb| jb.session == "b" && ja.pose_seq == jb.pose_seq && Arc::ptr_eq(&ja.parts[0], &jb.parts[0]))
     });
     assert!(same);
     assert!(sim.core.history_hits() > 0);
@@ -458,7 +466,7 @@ fn bad_joins_get_words_and_bystanders_keep_their_fps() {
         ("fpsbig", "lego", 160, 120, 1_000_000, "fps 1000000 is outside 1..=120"),
         ("huge", "lego", 7680, 4320, 30, "frame size 7680x4320 is outside the stream limits"),
         ("zero", "lego", 0, 10, 30, "frame size 0x10 is outside the stream limits"),
-        ("nowhere", "cubes", 160, 120, 30, "unknown scene \"cubes\"; this master has: lego, trio"),
+        ("nowhere", "cubes", 160, 120, 30, "unknown scene \"cubes\"; this master has: duo, lego, trio"),
     ];
     for (s, scene, w, h, fps, words) in cases {
         assert!(!sim.join(s, scene, w, h, fps));
@@ -537,4 +545,35 @@ fn stale_and_foreign_results_are_ignored() {
     sim.drain();
     sim.run_until(3500);
     assert!(sim.fps_between("a", 3000, 3500) >= 20.0);
+}
+
+#[test]
+fn a_multi_object_scene_renders_each_object_and_composes_them() {
+    let mut sim = Sim::new(fixed(8, true, Admission::Open), 20e6, 1.0);
+    assert!(sim.join("a", "duo", 160, 120, 25));
+    assert!(sim.join("b", "lego", 160, 120, 25));
+    sim.run_until(2000);
+    // Each object of the duo is its own task (per asset); the lego user shares the lego task.
+    let duo_frames = sim.frames_between("a", 500, 2000);
+    assert!(duo_frames.len() >= 35, "{} frames", duo_frames.len());
+    let jobs: Vec<&EncodeJob> = sim.encode_jobs.iter().filter(|j| j.session == "a").collect();
+    assert!(jobs.iter().all(|j| j.parts.len() == 2 && j.compose_over == Some(Vec3::new(0.1, 0.2, 0.3))));
+    assert!(sim.encode_jobs.iter().filter(|j| j.session == "b").all(|j| j.parts.len() == 1 && j.compose_over.is_none()));
+    let duo_tasks: Vec<&RenderTask> = sim.tasks.iter().filter(|t| t.views.iter().any(|v| v.tags.iter().any(|tag| tag.session == "a"))).collect();
+    assert!(duo_tasks.iter().any(|t| t.asset == "lego") && duo_tasks.iter().any(|t| t.asset == "trio"));
+    // Objects render over black (composed later) and at their own placement.
+    for t in &duo_tasks {
+        for v in t.views.iter().filter(|v| v.tags.iter().any(|tag| tag.session == "a")) {
+            assert_eq!(v.background, Vec3::ZERO);
+            assert_eq!(v.instance.scale, 0.5);
+            assert_eq!(v.instance.translation.x, if t.asset == "lego" { -0.5 } else { 0.5 });
+        }
+    }
+    assert!(sim.tasks.iter().any(|t| t.asset == "lego" && t.users() == 2), "the duo's lego and the lego user share a task");
+    // One object failing fails the frame, with words; the next frame is whole again.
+    sim.fail_next = true;
+    sim.run_until(2200);
+    assert!(sim.out["a"].errors.iter().any(|e| e.contains("simulated GPU fault")) || sim.out["b"].errors.iter().any(|e| e.contains("simulated GPU fault")));
+    sim.run_until(3000);
+    assert!(sim.fps_between("a", 2500, 3000) >= 20.0);
 }
