@@ -47,6 +47,7 @@ pub async fn spawn_local(listener: tokio::net::TcpListener, catalog: Arc<Catalog
         }
     });
     let m = Arc::clone(&metrics);
+    let farm_is_remote = cfg.nats.is_some();
     tokio::spawn(async move {
         if let Err(e) = master::run(format!("ws://{addr}/signal"), cfg, catalog, m).await {
             tracing::error!("master stopped: {e:#}");
@@ -56,7 +57,10 @@ pub async fn spawn_local(listener: tokio::net::TcpListener, catalog: Arc<Catalog
     // worker has calibrated (before that nothing renders).
     let ready = |what: &str, secs: u64| std::io::Error::other(format!("the local master {what} within {secs} s"));
     wait_for(5, || !signaling.stats().masters.is_empty()).await.ok_or_else(|| ready("did not register with signaling", 5))?;
-    wait_for(120, || metrics.farm_rays_per_s.get() > 0.0).await.ok_or_else(|| ready("had no render worker up", 120))?;
+    // A NATS farm may grow later; in-process workers come up within moments.
+    if !farm_is_remote {
+        wait_for(120, || metrics.farm_rays_per_s.get() > 0.0).await.ok_or_else(|| ready("had no render worker up", 120))?;
+    }
     Ok(LocalServer { addr, metrics, signaling })
 }
 

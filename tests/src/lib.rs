@@ -11,12 +11,14 @@ use nephele::{
     catalog::Catalog,
     master::{
         MasterConfig,
+        driver::NatsSettings,
         compositor::ComposeChoice,
         encoder::DEFAULT_BITS_PER_PIXEL,
         core::{Admission, CoreConfig, scheduler::RenderScale},
     },
     web::{self, LocalServer},
     wire::media::RtcConfig,
+    worker::NatsAuth,
 };
 use nephele_renderer::{CpuBackend, RenderSettings};
 
@@ -74,8 +76,18 @@ pub async fn start_server_with(scenes: &[String], core: CoreConfig) -> (LocalSer
 
 /// [`start_server_with`] at `bits_per_pixel` of video.
 pub async fn start_server_full(scenes: &[String], core: CoreConfig, bits_per_pixel: f64) -> (LocalServer, Arc<Catalog>) {
+    start_master(scenes, core, bits_per_pixel, None).await
+}
+
+/// A master rendering on the NATS farm at `nats` (with its token), in this process.
+pub async fn start_nats_master(scenes: &[String], core: CoreConfig, nats: &NatsServer) -> (LocalServer, Arc<Catalog>) {
+    let settings = NatsSettings { url: nats.url.clone(), auth: NatsAuth { token: Some(nats.token.clone()), ..Default::default() } };
+    start_master(scenes, core, DEFAULT_BITS_PER_PIXEL, Some(settings)).await
+}
+
+async fn start_master(scenes: &[String], core: CoreConfig, bits_per_pixel: f64, nats: Option<NatsSettings>) -> (LocalServer, Arc<Catalog>) {
     let catalog = Arc::new(Catalog::load(scenes, &CpuBackend, RenderSettings::default()).expect("the scenes load"));
-    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1, compose: ComposeChoice::Cpu, bits_per_pixel };
+    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1, compose: ComposeChoice::Cpu, bits_per_pixel, nats };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("a loopback port");
     (web::spawn_local(listener, Arc::clone(&catalog), cfg).await.expect("the server starts"), catalog)
 }
@@ -111,4 +123,65 @@ pub fn pair_scene(dir: &std::path::Path) -> String {
     });
     std::fs::write(&path, text.to_string()).expect("writing the scene file");
     format!("pair={}", path.display())
+}
+
+/// A `nats-server` of this test on a free loopback port, requiring a token; killed when
+/// dropped. Debian's `nats-server` package (tests/run installs it); a missing binary fails
+/// the test in words.
+pub struct NatsServer {
+    child: Option<Reap>,
+    pub port: u16,
+    pub url: String,
+    pub token: String,
+}
+
+impl NatsServer {
+    pub fn start() -> Self {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().unwrap().port();
+        let mut s = Self { child: None, port, url: format!("nats://127.0.0.1:{port}"), token: format!("t{}", std::process::id()) };
+        s.restart();
+        s
+    }
+
+    /// Stops it (clients see the connection drop).
+    pub fn stop(&mut self) {
+        self.child = None;
+    }
+
+    /// Starts it again on the same port.
+    pub fn restart(&mut self) {
+        self.child = None;
+        let child = Command::new("nats-server")
+            .args(["-a", "127.0.0.1", "-p", &self.port.to_string(), "--auth", &self.token])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("nats-server is missing: install the `nats-server` package (tests/run does)");
+        self.child = Some(Reap(child));
+        for _ in 0..200 {
+            if std::net::TcpStream::connect(("127.0.0.1", self.port)).is_ok() {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(25));
+        }
+        panic!("nats-server did not listen on port {} within 5 s", self.port);
+    }
+}
+
+/// Starts `nephele worker` on `nats` and waits until it serves (its "serves" line).
+pub fn spawn_worker(nats: &NatsServer, id: &str, farm: &str, scenes: &[String]) -> Reap {
+    use std::io::{BufRead, BufReader};
+    let mut cmd = nephele();
+    cmd.args(["worker", "--nats", &nats.url, "--farm", farm, "--id", id, "--backend", "cpu"]).env("NEPHELE_NATS_TOKEN", &nats.token);
+    for s in scenes {
+        cmd.args(["--scene", s]);
+    }
+    let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::null()).spawn().expect("starting nephele worker");
+    let mut out = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    assert!(line.contains(" serves "), "worker {id} printed {line:?}");
+    // Keep reading, so the worker never writes into a closed pipe.
+    std::thread::spawn(move || std::io::copy(&mut out, &mut std::io::sink()));
+    Reap(child)
 }

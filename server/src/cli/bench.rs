@@ -191,6 +191,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
                 workers: 1,
                 compose: ComposeChoice::Cpu,
         bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
+        nats: None,
             };
             let catalog = Arc::clone(&catalog);
             let report = rt.block_on(async {

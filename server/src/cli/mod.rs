@@ -30,6 +30,8 @@ pub enum Command {
     Master(serve::MasterArgs),
     /// Run the signaling server alone (pairs clients with master nodes, relays SDP/ICE).
     Signal(serve::SignalArgs),
+    /// A render worker of the NATS farm: renders tasks for masters started with --nats.
+    Worker(serve::WorkerArgs),
     /// Render one view of an asset to PNG.
     Render(render::RenderArgs),
     /// Build a procedural asset and write it as .nolf.
@@ -65,6 +67,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Serve(args) => serve::serve(args),
         Command::Master(args) => serve::master(args),
         Command::Signal(args) => serve::signal(args),
+        Command::Worker(args) => serve::worker(args),
         Command::Render(args) => render::render(args),
         Command::Generate(args) => render::generate(args),
         Command::Info(args) => render::info(args),

@@ -12,6 +12,7 @@ use crate::{
     catalog::Catalog,
     master::{
         self, MasterConfig,
+        driver::NatsSettings,
         compositor::ComposeChoice,
         encoder::DEFAULT_BITS_PER_PIXEL,
         core::{Admission, CoreConfig, scheduler::RenderScale},
@@ -19,6 +20,7 @@ use crate::{
     },
     web,
     wire::media::RtcConfig,
+    worker::{NatsAuth, WorkerConfig, protocol::Farm},
 };
 
 /// What a master serves and how it schedules.
@@ -71,6 +73,46 @@ pub struct MasterOptions {
     /// Video bits per pixel per frame: quality against bandwidth (kept within 0.3–20 Mbit/s).
     #[arg(long, default_value_t = DEFAULT_BITS_PER_PIXEL)]
     pub bits_per_pixel: f64,
+    #[command(flatten)]
+    pub nats: NatsArgs,
+}
+
+/// Where the NATS render farm is and how to log in to it.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct NatsArgs {
+    /// Render on `nephele worker` processes reached through this NATS server (e.g.
+    /// nats://10.0.0.5:4222) instead of in this process.
+    #[arg(long)]
+    pub nats: Option<String>,
+    /// NATS token (as `nats-server --auth`); better given in the environment.
+    #[arg(long, env = "NEPHELE_NATS_TOKEN", hide_env_values = true)]
+    pub nats_token: Option<String>,
+    /// NATS user (with --nats-password).
+    #[arg(long, env = "NEPHELE_NATS_USER")]
+    pub nats_user: Option<String>,
+    #[arg(long, env = "NEPHELE_NATS_PASSWORD", hide_env_values = true)]
+    pub nats_password: Option<String>,
+    /// NATS credentials file (JWT + NKey, for NATS accounts).
+    #[arg(long, env = "NEPHELE_NATS_CREDS")]
+    pub nats_creds: Option<std::path::PathBuf>,
+}
+
+impl NatsArgs {
+    pub fn auth(&self) -> Result<NatsAuth> {
+        let user = match (&self.nats_user, &self.nats_password) {
+            (Some(u), Some(p)) => Some((u.clone(), p.clone())),
+            (None, None) => None,
+            _ => anyhow::bail!("--nats-user and --nats-password go together"),
+        };
+        Ok(NatsAuth { token: self.nats_token.clone(), user, creds_file: self.nats_creds.clone() })
+    }
+
+    pub fn settings(&self) -> Result<Option<NatsSettings>> {
+        Ok(match &self.nats {
+            Some(url) => Some(NatsSettings { url: url.clone(), auth: self.auth()? }),
+            None => None,
+        })
+    }
 }
 
 impl MasterOptions {
@@ -80,7 +122,9 @@ impl MasterOptions {
         if !(0.01..=10.0).contains(&self.bits_per_pixel) {
             anyhow::bail!("--bits-per-pixel {} should be in 0.01..=10", self.bits_per_pixel);
         }
-        let backend = make_backend(self.backend)?;
+        let nats = self.nats.settings()?;
+        // With a NATS farm the workers render; the master only needs the scenes' shapes.
+        let backend = if nats.is_some() { Box::new(nephele_renderer::CpuBackend) } else { make_backend(self.backend)? };
         let settings = RenderSettings { step_scale: self.step_scale, ..Default::default() };
         settings.validate().map_err(anyhow::Error::msg)?;
         eprintln!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name());
@@ -93,6 +137,7 @@ impl MasterOptions {
             workers: self.workers,
             compose: self.compose,
             bits_per_pixel: self.bits_per_pixel,
+            nats,
         };
         Ok((catalog, cfg))
     }
@@ -186,4 +231,39 @@ pub fn signal(args: SignalArgs) -> Result<()> {
         let cfg = nephele_signaling::HubConfig { token: args.token, ..Default::default() };
         nephele_signaling::serve(listener, cfg).await.context("signaling server failed")
     })
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct WorkerArgs {
+    /// Which farm: `heavy` takes heavy tasks one at a time, `light` packs light ones.
+    #[arg(long, value_enum, default_value = "light")]
+    pub farm: Farm,
+    /// This worker's id in the farm (default: <farm>-<hostname>-<pid>).
+    #[arg(long)]
+    pub id: Option<String>,
+    /// Scenes (and so assets) this worker renders: as for `serve`.
+    #[arg(long = "scene", default_values = DEFAULT_SCENES)]
+    pub scenes: Vec<String>,
+    #[arg(long, value_enum, default_value = "auto")]
+    pub backend: BackendChoice,
+    /// Step-size multiplier (speed/accuracy knob; keep it equal on every worker).
+    #[arg(long, default_value_t = 1.0)]
+    pub step_scale: f32,
+    #[command(flatten)]
+    pub nats: NatsArgs,
+}
+
+pub fn worker(args: WorkerArgs) -> Result<()> {
+    let Some(url) = args.nats.nats.clone() else { anyhow::bail!("a worker needs --nats URL (the farm's NATS server)") };
+    let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
+    settings.validate().map_err(anyhow::Error::msg)?;
+    let backend = make_backend(args.backend)?;
+    eprintln!("preparing {} scene(s) on {} ...", args.scenes.len(), backend.name());
+    // A missing or corrupt asset stops the worker here, in words, before it takes any task.
+    let catalog = Arc::new(Catalog::load(&args.scenes, backend.as_ref(), settings).context("this worker cannot serve its scenes")?);
+    let host = std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_owned()).unwrap_or_else(|_| "host".into());
+    let host: String = host.chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-').take(32).collect();
+    let id = args.id.clone().unwrap_or_else(|| format!("{}-{host}-{}", args.farm.as_str(), std::process::id()));
+    let cfg = WorkerConfig { nats_url: url, auth: args.nats.auth()?, farm: args.farm, id };
+    tokio::runtime::Runtime::new()?.block_on(crate::worker::run(cfg, catalog))
 }

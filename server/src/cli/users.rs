@@ -229,6 +229,7 @@ async fn session_run(
         workers: 1,
         compose: ComposeChoice::Cpu,
         bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
+        nats: None,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
@@ -274,6 +275,7 @@ async fn overload_run(
         workers: 1,
         compose: ComposeChoice::Cpu,
         bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
+        nats: None,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;

@@ -178,6 +178,10 @@ pub struct ReplayReport {
     pub quality: Vec<QualitySample>,
     /// Errors the master sent on the pose channel.
     pub errors: Vec<String>,
+    /// Notices the master sent (the render farm went away or came back).
+    pub notices: Vec<String>,
+    /// The pose each decoded frame answers, in decode order.
+    pub decoded_pose_seqs: Vec<u64>,
 }
 
 impl ReplayReport {
@@ -216,6 +220,9 @@ impl std::fmt::Display for ReplayReport {
         for e in &self.errors {
             writeln!(f, "  master said: {e}")?;
         }
+        for n in &self.notices {
+            writeln!(f, "  master noted: {n}")?;
+        }
         Ok(())
     }
 }
@@ -239,6 +246,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
     let mut frames: Vec<ReceivedFrame> = Vec::new();
     let mut infos: Vec<(FrameInfo, Instant)> = Vec::new();
     let mut errors = Vec::new();
+    let mut notices = Vec::new();
     let period = Duration::from_secs_f64(trace.period_ms / 1e3);
     if let Some(at) = opts.start_at {
         tokio::time::sleep_until(tokio::time::Instant::from_std(at)).await;
@@ -280,6 +288,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
             m = client.messages.recv() => match m {
                 Some(ToViewer::Frame(info)) => infos.push((info, Instant::now())),
                 Some(ToViewer::Error { code, message }) => errors.push(format!("{code}: {message}")),
+                Some(ToViewer::Notice { code, message }) => notices.push(format!("{code}: {message}")),
                 Some(_) => {}
                 None => bail!("the pose channel closed early"),
             },
@@ -362,6 +371,8 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
         mean_render_scale: mean(infos.iter().map(|(i, _)| f64::from(i.render_scale))),
         quality,
         errors,
+        notices,
+        decoded_pose_seqs: frames.iter().filter_map(|f| f.pose_seq).collect(),
     })
 }
 

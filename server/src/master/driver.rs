@@ -27,7 +27,11 @@ use tokio_tungstenite::tungstenite::Message;
 
 use super::{
     compositor::{ComposeChoice, Compositor},
-    core::{CoreConfig, EncodeJob, Input, JoinRequest, MasterCore, Output, task::TaskResult},
+    core::{
+        CoreConfig, EncodeJob, Input, JoinRequest, MasterCore, Output,
+        task::{RenderTask, TaskId, TaskResult, WorkerId},
+    },
+    nats_farm::NatsFarm,
     encoder::{EncoderConfig, FrameEncoder, upscale_bilinear},
     metrics::MasterMetrics,
     peer::{MAX_CHANNEL_MESSAGE, MasterPeer, PeerEvent, WebrtcPeer},
@@ -35,6 +39,7 @@ use super::{
 };
 use crate::{
     catalog::Catalog,
+    worker::NatsAuth,
     wire::{
         FrameTimes,
         media::{RtcConfig, build_api},
@@ -57,6 +62,37 @@ pub struct MasterConfig {
     pub compose: ComposeChoice,
     /// Video bits per pixel per frame (quality against bandwidth).
     pub bits_per_pixel: f64,
+    /// Render on NATS workers instead of in-process ones.
+    pub nats: Option<NatsSettings>,
+}
+
+/// Where the NATS farm is and how to log in.
+#[derive(Debug, Clone)]
+pub struct NatsSettings {
+    pub url: String,
+    pub auth: NatsAuth,
+}
+
+/// The render workers a master sends tasks to.
+enum Farm {
+    Local(LocalWorkers),
+    Nats(NatsFarm),
+}
+
+impl Farm {
+    fn submit(&self, worker: &WorkerId, task: RenderTask) -> Result<(), RenderTask> {
+        match self {
+            Self::Local(w) => w.submit(worker, task),
+            Self::Nats(n) => n.submit(worker.clone(), task),
+        }
+    }
+
+    fn cancel(&self, task: TaskId) {
+        match self {
+            Self::Local(w) => w.cancel(task),
+            Self::Nats(n) => n.cancel(task),
+        }
+    }
 }
 
 /// Everything the driver loop hears.
@@ -105,10 +141,13 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
     let register = ToSignal::Register { name: cfg.name.clone(), capacity: cfg.core.capacity, scenes: catalog.names(), token: cfg.token.clone() };
     tokio::spawn(signaling_link(signal_url, register, events_tx.clone(), outbox));
     let worker_events = events_tx.clone();
-    let workers = LocalWorkers::spawn(Arc::clone(&catalog), cfg.workers, move |e| {
+    let report = move |e| {
         let _ = worker_events.send(Event::Worker(e));
-    })
-    .context("starting render workers")?;
+    };
+    let workers = match &cfg.nats {
+        None => Farm::Local(LocalWorkers::spawn(Arc::clone(&catalog), cfg.workers, report).context("starting render workers")?),
+        Some(n) => Farm::Nats(NatsFarm::start(&n.url, &n.auth, &cfg.name, report).await.context("joining the NATS render farm")?),
+    };
 
     let compositor = Arc::new(Compositor::new(cfg.compose).context("creating the compositor")?);
     let mut core = MasterCore::new(cfg.core.clone(), catalog.infos(), metrics, Instant::now());
@@ -180,7 +219,8 @@ fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mp
             PeerEvent::Closed(reason) => Some(Input::PeerClosed { session, reason }),
             PeerEvent::LocalIce(_) => None, // sent to signaling by the peer task
         },
-        Event::Worker(WorkerEvent::Up { worker, rays_per_s, slots }) => Some(Input::WorkerUp { worker, rays_per_s, slots }),
+        Event::Worker(WorkerEvent::Up { worker, rays_per_s, slots, farm, assets }) => Some(Input::WorkerUp { worker, rays_per_s, slots, farm, assets }),
+        Event::Worker(WorkerEvent::Down { worker, tasks_lost }) => Some(Input::WorkerDown { worker, tasks_lost }),
         Event::Worker(WorkerEvent::Done(result)) => Some(Input::RenderDone(result)),
         Event::Encoded { session, frame, encoder, result } => {
             let edge = sessions.get_mut(&session)?;
@@ -221,7 +261,7 @@ fn command(sessions: &HashMap<String, SessionEdge>, session: &str, cmd: PeerComm
 fn execute(
     out: Output,
     sessions: &mut HashMap<String, SessionEdge>,
-    workers: &LocalWorkers,
+    workers: &Farm,
     api: &Arc<webrtc::api::API>,
     to_signal: &mpsc::UnboundedSender<ToSignal>,
     events: &mpsc::UnboundedSender<Event>,

@@ -5,8 +5,9 @@
 //!   render tasks, the history table, frame rules; tested on simulated time.
 //! - the edge drivers around it: [`driver`] (the event loop and signaling link), [`peer`]
 //!   (one WebRTC connection per client), [`encoder`] (RGB → I420 → H.264 per session,
-//!   after [`compositor`] has composed a multi-object frame by depth),
-//!   [`workers`] (in-process render threads);
+//!   after [`compositor`] has composed a multi-object frame by depth), and the render
+//!   workers: [`workers`] (in-process threads, the default) or [`nats_farm`] (worker
+//!   processes on other machines, reached through NATS);
 //! - [`metrics`]: what `GET /metrics` shows.
 
 pub mod compositor;
@@ -14,6 +15,7 @@ pub mod core;
 pub mod driver;
 pub mod encoder;
 pub mod metrics;
+pub mod nats_farm;
 pub mod peer;
 pub mod workers;
 

@@ -14,13 +14,14 @@ use std::{
 
 use nephele_renderer::{Intrinsics, View, ViewRequest};
 
-use super::core::task::{RenderTask, TaskId, TaskResult, WorkerId};
+use super::core::task::{RenderTask, TaskClass, TaskId, TaskResult, WorkerId};
 use crate::catalog::Catalog;
 
 /// What a worker tells the driver.
 #[derive(Debug)]
 pub enum WorkerEvent {
-    Up { worker: WorkerId, rays_per_s: f64, slots: u32 },
+    Up { worker: WorkerId, rays_per_s: f64, slots: u32, farm: Option<TaskClass>, assets: Option<Vec<String>> },
+    Down { worker: WorkerId, tasks_lost: bool },
     Done(TaskResult),
 }
 
@@ -71,7 +72,7 @@ fn worker_loop(
 ) {
     let rays_per_s = calibrate(catalog);
     tracing::info!(worker = %id.0, backend = %catalog.backend_name, rays_per_s, "render worker up");
-    report(WorkerEvent::Up { worker: id.clone(), rays_per_s, slots: 1 });
+    report(WorkerEvent::Up { worker: id.clone(), rays_per_s, slots: 1, farm: None, assets: None });
     for task in tasks {
         if cancelled.lock().expect("cancel set").remove(&task.id) {
             report(WorkerEvent::Done(TaskResult { id: task.id, frames: Err("cancelled: every user of the task left".into()), render_ms: 0.0 }));

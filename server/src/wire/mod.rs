@@ -199,6 +199,9 @@ pub enum ToViewer {
     Frame(FrameInfo),
     /// A refused message; the session keeps its last good pose.
     Error { code: String, message: String },
+    /// Something the user should know that is not its own error (the render farm went
+    /// away, or came back).
+    Notice { code: String, message: String },
 }
 
 /// What one frame answered and where its time went.

@@ -40,7 +40,7 @@ use self::{
     history::{History, RequestKey},
     scheduler::{Candidate, Demand, Ema, RenderScale, STARVED_GRACE, UserClock, fair_scale, fits, latency_scale, round_size, sort_candidates},
     session::{FrameJob, Session},
-    task::{RenderTask, TaskId, TaskResult, TaskView, ViewTag, WorkerId},
+    task::{RenderTask, TaskClass, TaskId, TaskResult, TaskView, ViewTag, WorkerId},
 };
 use super::metrics::{MasterMetrics, SessionLabel};
 use crate::wire::{FrameTimes, ToViewer, media::background_of};
@@ -150,8 +150,13 @@ pub enum Input {
     FrameSent { session: String, frame: u64, times: FrameTimes },
     FrameFailed { session: String, frame: u64, error: String },
     /// A render worker can take tasks (`rays_per_s` from its calibration render).
-    WorkerUp { worker: WorkerId, rays_per_s: f64, slots: u32 },
-    WorkerDown { worker: WorkerId },
+    /// A render worker can take tasks. `rays_per_s` from its calibration render; `farm`:
+    /// the class of tasks it is for (`None`: any); `assets`: what it can render (`None`:
+    /// every asset).
+    WorkerUp { worker: WorkerId, rays_per_s: f64, slots: u32, farm: Option<TaskClass>, assets: Option<Vec<String>> },
+    /// A worker is gone. `tasks_lost`: its tasks will never answer (fail them now); else the
+    /// edge re-issues them elsewhere and their results still come.
+    WorkerDown { worker: WorkerId, tasks_lost: bool },
     /// Signaling (re)accepted our registration: send a heartbeat at once.
     SignalingUp,
     /// Nothing happened; time passed.
@@ -248,6 +253,8 @@ struct Worker {
     rays_per_s: Ema,
     slots: u32,
     in_flight: u32,
+    farm: Option<TaskClass>,
+    assets: Option<std::collections::BTreeSet<String>>,
 }
 
 #[derive(Debug)]
@@ -275,6 +282,8 @@ pub struct MasterCore {
     saturated_said: bool,
     /// Origin of every session's frame-slot grid.
     epoch: Instant,
+    /// Users were told the farm is gone (and will hear when it is back).
+    farm_was_lost: bool,
     now: Instant,
     metrics: Arc<MasterMetrics>,
 }
@@ -294,6 +303,7 @@ impl MasterCore {
             next_heartbeat: None,
             saturated_said: false,
             epoch: now,
+            farm_was_lost: false,
             now,
             metrics,
         }
@@ -366,18 +376,26 @@ impl MasterCore {
                     self.tell(&session, ToViewer::Error { code: "frame_failed".into(), message: error });
                 }
             }
-            Input::WorkerUp { worker, rays_per_s, slots } => {
+            Input::WorkerUp { worker, rays_per_s, slots, farm, assets } => {
+                let was_empty = self.workers.is_empty();
                 let mut ema = Ema::new(0.2);
                 ema.observe(rays_per_s);
-                let w = self.workers.entry(worker).or_insert(Worker { rays_per_s: ema, slots: slots.max(1), in_flight: 0 });
+                let assets = assets.map(|a| a.into_iter().collect());
+                let w = self.workers.entry(worker).or_insert(Worker { rays_per_s: ema, slots: slots.max(1), in_flight: 0, farm, assets: None });
                 w.slots = slots.max(1);
+                w.farm = farm;
+                w.assets = assets;
                 if w.rays_per_s.get().is_none() {
                     w.rays_per_s = ema;
                 }
                 // Signaling should hear the new capacity now.
                 self.next_heartbeat = Some(now);
+                if was_empty && self.farm_was_lost {
+                    self.farm_was_lost = false;
+                    self.notify_all("farm_back", "the render farm is back; frames resume");
+                }
             }
-            Input::WorkerDown { worker } => self.worker_down(&worker),
+            Input::WorkerDown { worker, tasks_lost } => self.worker_down(&worker, tasks_lost),
             Input::SignalingUp => self.next_heartbeat = Some(now),
             Input::Timeout => {}
         }
@@ -675,13 +693,56 @@ impl MasterCore {
         self.workers.iter().filter(|(_, w)| w.in_flight < w.slots).min_by_key(|(_, w)| w.in_flight).map(|(id, _)| id.clone())
     }
 
+    /// The worker for `task`: a free one that has its asset, from the task's farm (heavy
+    /// tasks to the heavy farm, light to the light) whenever that farm has the asset at all
+    /// (a busy farm is waited for), else from any farm; least loaded first.
+    fn worker_for(&self, task: &RenderTask) -> Option<WorkerId> {
+        let has = |w: &Worker| w.assets.as_ref().is_none_or(|a| a.contains(&task.asset));
+        let own_farm = |w: &Worker| w.farm.is_none_or(|f| f == task.class);
+        let farm_has_it = self.workers.values().any(|w| has(w) && own_farm(w));
+        self.workers
+            .iter()
+            .filter(|(_, w)| w.in_flight < w.slots && has(w) && (!farm_has_it || own_farm(w)))
+            .min_by_key(|(_, w)| w.in_flight)
+            .map(|(id, _)| id.clone())
+    }
+
+    /// No worker at all has `asset`.
+    fn nobody_has(&self, asset: &str) -> bool {
+        !self.workers.values().any(|w| w.assets.as_ref().is_none_or(|a| a.contains(asset)))
+    }
+
     fn schedule(&mut self, now: Instant) {
-        while let Some(worker) = self.free_worker() {
-            if self.queue.is_empty() && !self.plan_round(now) {
+        loop {
+            if self.queue.is_empty() && (self.free_worker().is_none() || !self.plan_round(now)) {
                 break;
             }
-            let Some((task, keys)) = self.queue.pop_front() else { continue };
+            // Tasks no worker could ever take fail now, in words.
+            while let Some(i) = self.queue.iter().position(|(t, _)| !self.workers.is_empty() && self.nobody_has(&t.asset)) {
+                let (task, keys) = self.queue.remove(i).expect("found");
+                let message = format!("no render worker has asset {:?}", task.asset);
+                self.fail_queued(task, keys, &message, now);
+            }
+            let Some(i) = self.queue.iter().position(|(t, _)| self.worker_for(t).is_some()) else { break };
+            let (task, keys) = self.queue.remove(i).expect("found");
+            let worker = self.worker_for(&task).expect("checked");
             self.dispatch(worker, task, keys);
+        }
+    }
+
+    /// A queued task that will not render: its users' frames fail.
+    fn fail_queued(&mut self, task: RenderTask, keys: Vec<RequestKey>, message: &str, now: Instant) {
+        let id = task.id;
+        let views = keys.into_iter().zip(task.views.iter().map(|v| v.tags.clone())).collect();
+        self.in_flight.insert(id, TaskInFlight { worker: WorkerId(String::new()), views, rays: task.rays });
+        self.render_done(TaskResult { id, frames: Err(message.into()), render_ms: 0.0 }, now);
+    }
+
+    /// A notice to every user (the farm went away or came back).
+    fn notify_all(&mut self, code: &str, message: &str) {
+        let sessions: Vec<String> = self.users.keys().cloned().collect();
+        for s in sessions {
+            self.tell(&s, ToViewer::Notice { code: code.into(), message: message.into() });
         }
     }
 
@@ -913,12 +974,21 @@ impl MasterCore {
         }
     }
 
-    fn worker_down(&mut self, worker: &WorkerId) {
-        self.workers.remove(worker);
-        let lost: Vec<TaskId> = self.in_flight.iter().filter(|(_, t)| &t.worker == worker).map(|(id, _)| *id).collect();
-        for id in lost {
-            self.render_done(TaskResult { id, frames: Err(format!("worker {} went away", worker.0)), render_ms: 0.0 }, self.now);
+    fn worker_down(&mut self, worker: &WorkerId, tasks_lost: bool) {
+        if self.workers.remove(worker).is_none() {
+            return;
         }
+        if tasks_lost {
+            let lost: Vec<TaskId> = self.in_flight.iter().filter(|(_, t)| &t.worker == worker).map(|(id, _)| *id).collect();
+            for id in lost {
+                self.render_done(TaskResult { id, frames: Err(format!("worker {} went away", worker.0)), render_ms: 0.0 }, self.now);
+            }
+        }
+        if self.workers.is_empty() && !self.users.is_empty() {
+            self.farm_was_lost = true;
+            self.notify_all("farm_unavailable", "the render farm is unreachable (no render worker is up); frames resume when it returns");
+        }
+        self.next_heartbeat = Some(self.now);
     }
 }
 

@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use glam::{DVec3, Vec3};
 use nephele_renderer::{Instance, Intrinsics, View};
 
-use super::*;
+use super::{task::TaskClass, *};
 use crate::wire::PoseMessage;
 
 const ENCODE_MS: u64 = 2;
@@ -57,6 +57,7 @@ struct Delivered {
     /// (time, frame info) of every frame info sent to the user.
     frames: Vec<(Instant, crate::wire::FrameInfo)>,
     errors: Vec<String>,
+    notices: Vec<String>,
 }
 
 struct Sim {
@@ -75,6 +76,8 @@ struct Sim {
     rejected: BTreeMap<String, String>,
     closed: BTreeMap<String, String>,
     tasks: Vec<RenderTask>,
+    /// Which worker each task went to.
+    routes: Vec<(WorkerId, TaskId)>,
     cancelled: Vec<TaskId>,
     encode_jobs: Vec<EncodeJob>,
     heartbeats: Vec<(u32, f64, bool)>,
@@ -87,7 +90,7 @@ impl Sim {
         let t0 = Instant::now();
         let mut core = MasterCore::new(cfg, scenes(), Arc::new(MasterMetrics::new()), t0);
         let worker = WorkerId("w1".into());
-        core.handle_input(t0, Input::WorkerUp { worker: worker.clone(), rays_per_s, slots: 1 });
+        core.handle_input(t0, Input::WorkerUp { worker: worker.clone(), rays_per_s, slots: 1, farm: None, assets: None });
         let mut sim = Self {
             core,
             t0,
@@ -102,6 +105,7 @@ impl Sim {
             rejected: BTreeMap::new(),
             closed: BTreeMap::new(),
             tasks: Vec::new(),
+            routes: Vec::new(),
             cancelled: Vec::new(),
             encode_jobs: Vec::new(),
             heartbeats: Vec::new(),
@@ -163,6 +167,7 @@ impl Sim {
                     match msg {
                         ToViewer::Frame(info) => d.frames.push((self.now, info)),
                         ToViewer::Error { code, message } => d.errors.push(format!("{code}: {message}")),
+                        ToViewer::Notice { code, message } => d.notices.push(format!("{code}: {message}")),
                         ToViewer::Session { .. } => {}
                     }
                 }
@@ -170,13 +175,14 @@ impl Sim {
                     let start = self.busy_until[&worker].max(self.now);
                     let secs = self.fixed_ms / 1e3 + task.rays as f64 / self.rays_per_s;
                     let done = start + Duration::from_secs_f64(secs);
-                    self.busy_until.insert(worker, done);
+                    self.busy_until.insert(worker.clone(), done);
                     let frames = if std::mem::take(&mut self.fail_next) {
                         Err("simulated GPU fault".to_string())
                     } else {
                         Ok(task.views.iter().map(|_| Arc::new(Frame { width: 1, height: 1, rgba: vec![0; 4], depth: vec![1.0] })).collect())
                     };
                     self.renders.push((done, TaskResult { id: task.id, frames, render_ms: secs * 1e3 }));
+                    self.routes.push((worker, task.id));
                     self.tasks.push(task);
                 }
                 Output::Cancel { task, .. } => self.cancelled.push(task),
@@ -533,18 +539,54 @@ fn stale_and_foreign_results_are_ignored() {
     assert!(sim.out["a"].errors.is_empty());
     // A worker that goes away fails its tasks; with no worker left nothing renders, and a
     // new worker resumes the stream.
-    sim.core.handle_input(sim.now, Input::WorkerDown { worker: WorkerId("w1".into()) });
+    sim.core.handle_input(sim.now, Input::WorkerDown { worker: WorkerId("w1".into()), tasks_lost: true });
     sim.drain();
     sim.renders.clear();
     sim.run_until(2500);
     let before = sim.frames_between("a", 2100, 2500).len();
     assert_eq!(before, 0);
+    assert_eq!(sim.out["a"].notices, ["farm_unavailable: the render farm is unreachable (no render worker is up); frames resume when it returns"]);
     let w2 = WorkerId("w2".into());
     sim.busy_until.insert(w2.clone(), sim.now);
-    sim.core.handle_input(sim.now, Input::WorkerUp { worker: w2, rays_per_s: 20e6, slots: 1 });
+    sim.core.handle_input(sim.now, Input::WorkerUp { worker: w2, rays_per_s: 20e6, slots: 1, farm: None, assets: None });
     sim.drain();
     sim.run_until(3500);
     assert!(sim.fps_between("a", 3000, 3500) >= 20.0);
+    assert_eq!(sim.out["a"].notices.len(), 2);
+    assert!(sim.out["a"].notices[1].starts_with("farm_back"));
+}
+
+#[test]
+fn tasks_go_to_a_worker_with_their_asset_and_class() {
+    let mut sim = Sim::new(fixed(8, true, Admission::Open), 20e6, 1.0);
+    // Replace the generic worker by a heavy one with lego only and a light one with both.
+    sim.core.handle_input(sim.now, Input::WorkerDown { worker: WorkerId("w1".into()), tasks_lost: true });
+    for (id, farm, assets) in [("heavy-1", TaskClass::Heavy, vec!["lego"]), ("light-1", TaskClass::Light, vec!["lego", "trio"])] {
+        let w = WorkerId(id.into());
+        sim.busy_until.insert(w.clone(), sim.now);
+        let assets = Some(assets.into_iter().map(String::from).collect());
+        sim.core.handle_input(sim.now, Input::WorkerUp { worker: w, rays_per_s: 20e6, slots: 1, farm: Some(farm), assets });
+    }
+    sim.drain();
+    // A close-up of lego (heavy), a small trio (light).
+    assert!(sim.join("near", "lego", 800, 600, 10));
+    assert!(sim.join("small", "trio", 64, 48, 10));
+    let mut routed = Vec::new();
+    for _ in 0..200 {
+        sim.run_until(sim.now.duration_since(sim.t0).as_millis() as u64 + 5);
+        while let Some(t) = sim.tasks.pop() {
+            routed.push(t);
+        }
+    }
+    let by_asset = |a: &str| routed.iter().filter(|t| t.asset == a).collect::<Vec<_>>();
+    let worker_of = |t: &RenderTask| sim.routes.iter().find(|(_, id)| *id == t.id).map(|(w, _)| w.0.clone()).unwrap();
+    assert!(!by_asset("trio").is_empty() && by_asset("trio").iter().all(|t| t.class == TaskClass::Light && worker_of(t) == "light-1"));
+    assert!(!by_asset("lego").is_empty() && by_asset("lego").iter().all(|t| t.class == TaskClass::Heavy), "800×600 of lego is heavy");
+    assert!(by_asset("lego").iter().all(|t| worker_of(t) == "heavy-1"), "heavy tasks wait for the heavy farm");
+    // A scene whose asset no worker has fails in words, and nothing hangs.
+    sim.core.handle_input(sim.now, Input::WorkerDown { worker: WorkerId("light-1".into()), tasks_lost: true });
+    sim.run_until(sim.now.duration_since(sim.t0).as_millis() as u64 + 300);
+    assert!(sim.out["small"].errors.iter().any(|e| e.contains("no render worker has asset \"trio\"")), "{:?}", sim.out["small"].errors);
 }
 
 #[test]
