@@ -567,6 +567,14 @@ export class Connection {
       this.setBanner(describeError(msg.code || 'error', msg.message), 'warn');
       const gen = this.gen;
       this.bannerTimer = setTimeout(() => { if (gen === this.gen && this.state === 'connected') this.setBanner(null); }, 5000);
+    } else if (msg.type === 'notice') {
+      // The render farm went away (kept until it is back) or came back (shown briefly).
+      const back = msg.code === 'farm_back';
+      this.setBanner(msg.message, back ? 'info' : 'warn');
+      if (back) {
+        const gen = this.gen;
+        this.bannerTimer = setTimeout(() => { if (gen === this.gen && this.state === 'connected') this.setBanner(null); }, 3000);
+      }
     }
   }
 

@@ -52,30 +52,40 @@ pub fn check_layers(layers: &[&Frame], background: Vec3) -> Result<(u32, u32), C
     Ok((first.width, first.height))
 }
 
-/// Composes premultiplied layers over `background` (linear RGB in [0, 1]).
+/// Composes premultiplied layers over `background` (linear RGB in [0, 1]); rows in
+/// parallel.
 pub fn compose(layers: &[&Frame], background: Vec3) -> Result<Frame, ComposeError> {
+    use rayon::prelude::*;
     let (width, height) = check_layers(layers, background)?;
-    let n = width as usize * height as usize;
+    let (w, n) = (width as usize, width as usize * height as usize);
     let mut rgba = vec![0u8; 4 * n];
     let mut depth = vec![f32::INFINITY; n];
-    let mut order: Vec<usize> = Vec::with_capacity(layers.len());
-    for p in 0..n {
-        order.clear();
-        order.extend(0..layers.len());
-        // Stable: equal depths keep the layers' order. NaN cannot come from the renderer;
-        // it sorts last with the misses.
-        order.sort_by(|&a, &b| key(layers[a].depth[p]).total_cmp(&key(layers[b].depth[p])));
-        let (mut c, mut t) = (Vec3::ZERO, 1.0f32);
-        for &i in &order {
-            let px = &layers[i].rgba[4 * p..4 * p + 4];
-            let a = f32::from(px[3]) / 255.0;
-            c += t * Vec3::new(f32::from(px[0]), f32::from(px[1]), f32::from(px[2])) / 255.0;
-            t *= 1.0 - a;
+    rgba.par_chunks_mut(4 * w).zip(depth.par_chunks_mut(w)).enumerate().for_each(|(y, (rgba_row, depth_row))| {
+        let mut order = [0usize; MAX_LAYERS];
+        for x in 0..w {
+            let p = y * w + x;
+            // Insertion sort by depth: stable (equal depths keep the layers' order), K ≤ 16.
+            let k = layers.len();
+            for i in 0..k {
+                let d = key(layers[i].depth[p]);
+                let mut j = i;
+                while j > 0 && key(layers[order[j - 1]].depth[p]) > d {
+                    order[j] = order[j - 1];
+                    j -= 1;
+                }
+                order[j] = i;
+            }
+            let (mut c, mut t) = (Vec3::ZERO, 1.0f32);
+            for &i in &order[..k] {
+                let px = &layers[i].rgba[4 * p..4 * p + 4];
+                c += t * Vec3::new(f32::from(px[0]), f32::from(px[1]), f32::from(px[2])) / 255.0;
+                t *= 1.0 - f32::from(px[3]) / 255.0;
+            }
+            let out = c + t * background;
+            rgba_row[4 * x..4 * x + 4].copy_from_slice(&[to_unorm8(out.x), to_unorm8(out.y), to_unorm8(out.z), to_unorm8(1.0 - t)]);
+            depth_row[x] = layers[order[0]].depth[p];
         }
-        let out = c + t * background;
-        rgba[4 * p..4 * p + 4].copy_from_slice(&[to_unorm8(out.x), to_unorm8(out.y), to_unorm8(out.z), to_unorm8(1.0 - t)]);
-        depth[p] = layers[order[0]].depth[p];
-    }
+    });
     Ok(Frame { width, height, rgba, depth })
 }
 

@@ -87,17 +87,34 @@ const PAGES: &[(&str, &str, &str)] = &[
 
 /// Pages plus `/scenes` and `/metrics`, merged with signaling's routes.
 pub fn router(signaling: nephele_signaling::SignalState, catalog: Arc<Catalog>, metrics: Arc<MasterMetrics>) -> Router {
-    let mut router = nephele_signaling::app(signaling);
+    let scenes = serde_json::json!({ "scenes": catalog.names(), "default": catalog.default_scene });
+    with_pages(nephele_signaling::app(signaling))
+        .route("/scenes", get(move || async move { Json(scenes.clone()) }))
+        .route("/metrics", get(move || async move { metrics_page(&metrics) }))
+        .fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
+}
+
+/// `nephele signal` alone: signaling's routes, the pages, and `/scenes` as the registered
+/// masters offer them (the first master's first scene is the default).
+pub fn signaling_router(signaling: nephele_signaling::SignalState) -> Router {
+    let state = signaling.clone();
+    let scenes = move || {
+        let stats = state.stats();
+        let mut names: Vec<String> = stats.masters.iter().flat_map(|m| m.scenes.iter().cloned()).collect();
+        let default = names.first().cloned();
+        names.sort();
+        names.dedup();
+        Json(serde_json::json!({ "scenes": names, "default": default }))
+    };
+    with_pages(nephele_signaling::app(signaling)).route("/scenes", get(move || std::future::ready(scenes()))).fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
+}
+
+fn with_pages(mut router: Router) -> Router {
     for &(path, mime, body) in PAGES {
         router = router.route(path, get(move || async move { page(mime, body) }));
     }
     let (_, mime, index) = PAGES[0];
-    router = router.route("/", get(move || async move { page(mime, index) }));
-    let scenes = serde_json::json!({ "scenes": catalog.names(), "default": catalog.default_scene });
-    router
-        .route("/scenes", get(move || async move { Json(scenes.clone()) }))
-        .route("/metrics", get(move || async move { metrics_page(&metrics) }))
-        .fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
+    router.route("/", get(move || async move { page(mime, index) }))
 }
 
 fn metrics_page(metrics: &MasterMetrics) -> Response {

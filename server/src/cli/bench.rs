@@ -113,6 +113,10 @@ pub enum BenchCommand {
     /// replaying the orbit at its own phase, with batching on and off, per backend; plus
     /// two clients sharing one view (history hits).
     Users(super::users::UsersArgs),
+    /// The render farm on NATS (its own nats-server and worker processes) against the
+    /// in-process worker: frame time, the NATS hop, NEPHELE Eq. 9 for a composed scene, and
+    /// the failover gap when a worker is killed.
+    Farm(super::farm::FarmArgs),
 }
 
 /// Runs one `nephele bench` subcommand.
@@ -167,6 +171,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
             Ok(())
         }
         BenchCommand::Users(args) => super::users::run(args),
+        BenchCommand::Farm(args) => super::farm::run(args),
     }
 }
 

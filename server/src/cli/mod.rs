@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod data;
+pub mod farm;
 pub mod plot;
 pub mod render;
 pub mod replay;

@@ -227,9 +227,11 @@ pub fn signal(args: SignalArgs) -> Result<()> {
     rt.block_on(async {
         let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
         let addr = listener.local_addr()?;
-        println!("signaling on ws://{addr}/signal (status: http://{addr}/status)");
+        println!("signaling on ws://{addr}/signal (status: http://{addr}/status) — the pages: http://{addr}/");
         let cfg = nephele_signaling::HubConfig { token: args.token, ..Default::default() };
-        nephele_signaling::serve(listener, cfg).await.context("signaling server failed")
+        let state = nephele_signaling::SignalState::new(cfg);
+        state.spawn_tick_task();
+        axum::serve(listener, web::signaling_router(state)).await.context("signaling server failed")
     })
 }
 

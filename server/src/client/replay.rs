@@ -163,6 +163,14 @@ pub struct ReplayReport {
     pub convert_ms: Percentiles,
     pub encode_ms: Percentiles,
     pub send_ms: Percentiles,
+    /// Multi-object and farm frames: all render tasks summed, the network hop to remote
+    /// workers, depth composition, and frame start → pixels ready.
+    pub render_total_ms: Percentiles,
+    pub transfer_ms: Percentiles,
+    pub compose_ms: Percentiles,
+    pub ready_ms: Percentiles,
+    /// Mean result bytes per frame that crossed the network.
+    pub transfer_bytes_mean: f64,
     pub idr_frames: usize,
     /// Time between consecutive decoded frames, ms.
     pub frame_gap_ms: Percentiles,
@@ -182,6 +190,8 @@ pub struct ReplayReport {
     pub notices: Vec<String>,
     /// The pose each decoded frame answers, in decode order.
     pub decoded_pose_seqs: Vec<u64>,
+    /// When each frame was decoded, ms after the first pose was sent.
+    pub decoded_at_ms: Vec<f64>,
 }
 
 impl ReplayReport {
@@ -363,6 +373,11 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
         convert_ms: stat(|i| i.times.convert_ms),
         encode_ms: stat(|i| i.times.encode_ms),
         send_ms: stat(|i| i.times.send_ms),
+        render_total_ms: stat(|i| i.times.render_total_ms),
+        transfer_ms: stat(|i| i.times.transfer_ms),
+        compose_ms: stat(|i| i.times.compose_ms),
+        ready_ms: stat(|i| i.times.ready_ms),
+        transfer_bytes_mean: mean(infos.iter().map(|(i, _)| i.times.transfer_bytes as f64)),
         idr_frames: infos.iter().filter(|(i, _)| i.times.idr).count(),
         frame_gap_ms: Percentiles::of(&frames.windows(2).map(|w| w[1].decoded_at.duration_since(w[0].decoded_at).as_secs_f64() * 1e3).collect::<Vec<_>>()),
         render_ms_per_view: mean(rendered.iter().map(|i| i.times.render_ms / f64::from(i.batch_views.max(1)))),
@@ -373,6 +388,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
         errors,
         notices,
         decoded_pose_seqs: frames.iter().filter_map(|f| f.pose_seq).collect(),
+        decoded_at_ms: frames.iter().map(|f| f.decoded_at.saturating_duration_since(start).as_secs_f64() * 1e3).collect(),
     })
 }
 

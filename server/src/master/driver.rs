@@ -299,7 +299,7 @@ fn execute(
         Output::ToViewer { session, msg } => command(sessions, &session, PeerCommand::Text(msg.to_json())),
         Output::Render { worker, task } => {
             if let Err(task) = workers.submit(&worker, task) {
-                let result = TaskResult { id: task.id, frames: Err(format!("worker {} is gone", worker.0)), render_ms: 0.0 };
+                let result = TaskResult::failed(task.id, format!("worker {} is gone", worker.0));
                 inputs.push(Input::RenderDone(result));
             }
         }
@@ -360,6 +360,7 @@ fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, co
         },
     };
     let compose_ms = t_compose.elapsed().as_secs_f64() * 1e3;
+    let ready_ms = job.started_at.elapsed().as_secs_f64() * 1e3;
     let upscaled;
     let rgba: &[u8] = if (p.width, p.height) == (w, h) {
         &p.rgba
@@ -374,7 +375,7 @@ fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, co
     let result = encoder
         .encode_at(rgba, w, h, u64::from(job.pose_seq), t_ms)
         .map(|f| {
-            let times = FrameTimes { render_ms: 0.0, compose_ms, convert_ms: f.convert_ms, encode_ms: f.encode_ms, send_ms: 0.0, bytes: f.annex_b.len(), idr: f.is_idr };
+            let times = FrameTimes { compose_ms, ready_ms, convert_ms: f.convert_ms, encode_ms: f.encode_ms, bytes: f.annex_b.len(), idr: f.is_idr, ..Default::default() };
             (Bytes::from(f.annex_b), times)
         })
         .map_err(|e| format!("encode: {e}"));

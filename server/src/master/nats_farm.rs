@@ -149,7 +149,7 @@ impl FarmLoop {
                     None => return,
                     Some(Command::Submit { worker, task }) => self.submit(&worker, task).await,
                     Some(Command::Cancel(id)) => if self.pending.remove(&id).is_some() {
-                        (self.report)(WorkerEvent::Done(TaskResult { id, frames: Err("cancelled: every user of the task left".into()), render_ms: 0.0 }));
+                        (self.report)(WorkerEvent::Done(TaskResult::failed(id, "cancelled: every user of the task left")));
                     },
                 },
                 msg = replies.next() => match msg {
@@ -340,8 +340,10 @@ impl FarmLoop {
         }
         let sizes = p.sizes.clone().ok_or("the first chunk never came")?;
         let joined: Vec<u8> = p.chunks.iter().flatten().flat_map(|c| c.iter().copied()).collect();
-        let frames = frames_from(&sizes, &joined).map_err(|e| e.to_string())?;
-        Ok(Some(TaskResult { id, frames: Ok(frames), render_ms: p.render_ms }))
+        let frames = frames_from(&sizes, &joined, p.task.needs_depth).map_err(|e| e.to_string())?;
+        let round_trip_ms = p.sent_at.elapsed().as_secs_f64() * 1e3;
+        let transfer_ms = (round_trip_ms - p.render_ms).max(0.0);
+        Ok(Some(TaskResult { id, frames: Ok(frames), render_ms: p.render_ms, transfer_ms, bytes: joined.len() as u64 }))
     }
 
     async fn check_deadlines(&mut self) {
@@ -400,7 +402,7 @@ impl FarmLoop {
             self.pending.remove(&id);
             tracing::warn!(task = %id, attempts, "{why}; no other worker can take it");
             let message = format!("{why}; no other render worker could take the task after {attempts} attempt(s)");
-            (self.report)(WorkerEvent::Done(TaskResult { id, frames: Err(message), render_ms: 0.0 }));
+            (self.report)(WorkerEvent::Done(TaskResult::failed(id, message)));
             return;
         };
         tracing::info!(task = %id, to = %target, "{why}; re-issuing");

@@ -75,7 +75,7 @@ fn worker_loop(
     report(WorkerEvent::Up { worker: id.clone(), rays_per_s, slots: 1, farm: None, assets: None });
     for task in tasks {
         if cancelled.lock().expect("cancel set").remove(&task.id) {
-            report(WorkerEvent::Done(TaskResult { id: task.id, frames: Err("cancelled: every user of the task left".into()), render_ms: 0.0 }));
+            report(WorkerEvent::Done(TaskResult::failed(task.id, "cancelled: every user of the task left")));
             continue;
         }
         report(WorkerEvent::Done(render_task(catalog, &task)));
@@ -97,7 +97,7 @@ pub fn render_task(catalog: &Catalog, task: &RenderTask) -> TaskResult {
             }
         }
     };
-    TaskResult { id: task.id, frames, render_ms: started.elapsed().as_secs_f64() * 1e3 }
+    TaskResult::local(task.id, frames, started.elapsed().as_secs_f64() * 1e3)
 }
 
 /// Rays per second of one warm render of each asset from a typical viewpoint.

@@ -235,11 +235,24 @@ pub struct FrameInfo {
 /// Where one frame's time went after it left the queue, and what it weighed.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct FrameTimes {
-    /// The longest render task of the frame's objects.
+    /// The longest render task of the frame's objects (NEPHELE Eq. 9's max T_i).
     pub render_ms: f64,
-    /// Depth composition of several objects (0 for one).
+    /// All render tasks of the frame's objects, summed.
+    #[serde(default)]
+    pub render_total_ms: f64,
+    /// Getting tasks to remote workers and results back, the longest of the frame's
+    /// objects (0 in process).
+    #[serde(default)]
+    pub transfer_ms: f64,
+    /// Result bytes that crossed the network for this frame (Eq. 9's Σ D_i).
+    #[serde(default)]
+    pub transfer_bytes: u64,
+    /// Depth composition of several objects (0 for one; Eq. 9's C).
     #[serde(default)]
     pub compose_ms: f64,
+    /// From the frame's start to its pixels being ready (rendered, gathered, composed).
+    #[serde(default)]
+    pub ready_ms: f64,
     /// RGBA → I420.
     pub convert_ms: f64,
     pub encode_ms: f64,

@@ -184,11 +184,12 @@ async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, mes
     };
     let started = Instant::now();
     let task = msg.task;
+    let with_depth = task.needs_depth;
     let result = tokio::task::spawn_blocking(move || render_task(&catalog, &task)).await;
     keepalive.abort();
     match result.map_err(|e| e.to_string()).and_then(|r| r.frames.map(|f| (f, r.render_ms))) {
         Ok((frames, render_ms)) => {
-            let (sizes, chunks) = result_chunks(&frames);
+            let (sizes, chunks) = result_chunks(&frames, with_depth);
             let n = chunks.len();
             for (i, chunk) in chunks.into_iter().enumerate() {
                 let mut extra = ids.clone();

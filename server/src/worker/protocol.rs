@@ -15,7 +15,8 @@
 //!   rendering, then the result as `chunk` messages `Nephele-Chunk: i/n` (the first carries
 //!   `Nephele-Views`, the JSON list of view sizes, and `Nephele-Render-Ms`), or one `error`
 //!   message with the reason as payload. The result payload is, per view in order, RGBA8
-//!   (`w·h·4` bytes) then depth (`w·h` little-endian f32), cut into chunks of at most
+//!   (`w·h·4` bytes) then, if the task `needs_depth` (its views will be composed by depth),
+//!   depth (`w·h` little-endian f32), cut into chunks of at most
 //!   [`CHUNK_BYTES`]: half of NATS's default 1 MiB payload limit, leaving room for headers
 //!   and for servers configured lower.
 
@@ -153,14 +154,17 @@ pub enum ReplyError {
     Chunk { index: usize, count: usize },
 }
 
-/// The result payload of rendered views, in chunks of at most [`CHUNK_BYTES`].
-pub fn result_chunks(frames: &[Arc<Frame>]) -> (Vec<(u32, u32)>, Vec<Bytes>) {
+/// The result payload of rendered views (depth too if `with_depth`), in chunks of at most
+/// [`CHUNK_BYTES`].
+pub fn result_chunks(frames: &[Arc<Frame>], with_depth: bool) -> (Vec<(u32, u32)>, Vec<Bytes>) {
     let sizes = frames.iter().map(|f| (f.width, f.height)).collect();
-    let mut all = Vec::with_capacity(frames.iter().map(|f| f.rgba.len() + 4 * f.depth.len()).sum());
+    let mut all = Vec::with_capacity(frames.iter().map(|f| f.rgba.len() + if with_depth { 4 * f.depth.len() } else { 0 }).sum());
     for f in frames {
         all.extend_from_slice(&f.rgba);
-        for d in &f.depth {
-            all.extend_from_slice(&d.to_le_bytes());
+        if with_depth {
+            for d in &f.depth {
+                all.extend_from_slice(&d.to_le_bytes());
+            }
         }
     }
     let all = Bytes::from(all);
@@ -172,9 +176,11 @@ pub fn result_chunks(frames: &[Arc<Frame>]) -> (Vec<(u32, u32)>, Vec<Bytes>) {
     (sizes, chunks)
 }
 
-/// Frames back from the joined chunks and the `Nephele-Views` sizes.
-pub fn frames_from(sizes: &[(u32, u32)], payload: &[u8]) -> Result<Vec<Arc<Frame>>, ReplyError> {
-    let want: usize = sizes.iter().map(|(w, h)| *w as usize * *h as usize * 8).sum();
+/// Frames back from the joined chunks and the `Nephele-Views` sizes. Without depth, the
+/// frames' depth is empty (only a composed scene reads it).
+pub fn frames_from(sizes: &[(u32, u32)], payload: &[u8], with_depth: bool) -> Result<Vec<Arc<Frame>>, ReplyError> {
+    let per_pixel = if with_depth { 8 } else { 4 };
+    let want: usize = sizes.iter().map(|(w, h)| *w as usize * *h as usize * per_pixel).sum();
     if payload.len() != want {
         return Err(ReplyError::Size { got: payload.len(), want });
     }
@@ -184,8 +190,13 @@ pub fn frames_from(sizes: &[(u32, u32)], payload: &[u8]) -> Result<Vec<Arc<Frame
         let n = w as usize * h as usize;
         let rgba = payload[at..at + 4 * n].to_vec();
         at += 4 * n;
-        let depth = payload[at..at + 4 * n].chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        at += 4 * n;
+        let depth = if with_depth {
+            let d = payload[at..at + 4 * n].chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+            at += 4 * n;
+            d
+        } else {
+            Vec::new()
+        };
         frames.push(Arc::new(Frame { width: w, height: h, rgba, depth }));
     }
     Ok(frames)
@@ -233,14 +244,20 @@ mod tests {
     #[test]
     fn results_round_trip_through_chunks() {
         let frames = vec![frame(640, 480, 3), frame(1, 1, 5), frame(97, 31, 7)];
-        let (sizes, chunks) = result_chunks(&frames);
+        let (sizes, chunks) = result_chunks(&frames, true);
         assert!(chunks.len() > 1 && chunks.iter().all(|c| c.len() <= CHUNK_BYTES));
         let joined: Vec<u8> = chunks.iter().flat_map(|c| c.iter().copied()).collect();
-        let back = frames_from(&sizes, &joined).unwrap();
+        let back = frames_from(&sizes, &joined, true).unwrap();
         assert_eq!(back, frames);
         // Truncated or padded payloads are refused.
-        assert!(matches!(frames_from(&sizes, &joined[1..]), Err(ReplyError::Size { .. })));
-        assert!(matches!(frames_from(&sizes[..1], &joined), Err(ReplyError::Size { .. })));
+        assert!(matches!(frames_from(&sizes, &joined[1..], true), Err(ReplyError::Size { .. })));
+        assert!(matches!(frames_from(&sizes[..1], &joined, true), Err(ReplyError::Size { .. })));
+        // Without depth: half the bytes, colours intact.
+        let (_, chunks) = result_chunks(&frames, false);
+        let joined: Vec<u8> = chunks.iter().flat_map(|c| c.iter().copied()).collect();
+        assert_eq!(joined.len(), frames.iter().map(|f| f.rgba.len()).sum::<usize>());
+        let back = frames_from(&sizes, &joined, false).unwrap();
+        assert!(back.iter().zip(&frames).all(|(a, b)| a.rgba == b.rgba && a.depth.is_empty()));
     }
 
     #[test]

@@ -207,6 +207,11 @@ struct FrameInFlight {
     parts: Vec<Option<Arc<Frame>>>,
     /// Longest render task of its parts, ms.
     render_ms: f64,
+    /// All its parts' render tasks, ms.
+    render_total_ms: f64,
+    /// Longest network hop of its parts, ms, and bytes over the network.
+    transfer_ms: f64,
+    transfer_bytes: u64,
     batch_views: u32,
     /// No part was rendered for it.
     reused: bool,
@@ -735,7 +740,7 @@ impl MasterCore {
         let id = task.id;
         let views = keys.into_iter().zip(task.views.iter().map(|v| v.tags.clone())).collect();
         self.in_flight.insert(id, TaskInFlight { worker: WorkerId(String::new()), views, rays: task.rays });
-        self.render_done(TaskResult { id, frames: Err(message.into()), render_ms: 0.0 }, now);
+        self.render_done(TaskResult::failed(id, message), now);
     }
 
     /// A notice to every user (the farm went away or came back).
@@ -794,7 +799,16 @@ impl MasterCore {
             }
             // Several objects render over black (premultiplied) and are composed later.
             let render_background = if scene.composed() { Vec3::ZERO } else { u.background };
-            let mut fl = FrameInFlight { job, parts: vec![None; scene.objects.len()], render_ms: 0.0, batch_views: 0, reused: true };
+            let mut fl = FrameInFlight {
+                job,
+                parts: vec![None; scene.objects.len()],
+                render_ms: 0.0,
+                render_total_ms: 0.0,
+                transfer_ms: 0.0,
+                transfer_bytes: 0,
+                batch_views: 0,
+                reused: true,
+            };
             for (part, object) in scene.objects.iter().enumerate() {
                 let instance = job.pose.instance.then_inside(&object.instance);
                 let key = RequestKey {
@@ -873,7 +887,9 @@ impl MasterCore {
         let id = TaskId(self.next_task);
         self.next_task += 1;
         let (views, keys): (Vec<TaskView>, Vec<RequestKey>) = views.into_iter().unzip();
-        (RenderTask { id, asset, views, class, rays, est_pixels }, keys)
+        // Views over black are objects of composed scenes (see plan_round).
+        let needs_depth = views.iter().any(|v| v.background == Vec3::ZERO);
+        (RenderTask { id, asset, views, class, rays, est_pixels, needs_depth }, keys)
     }
 
     /// Once every part of a user's frame is there: encode it.
@@ -933,6 +949,9 @@ impl MasterCore {
                     Some(pixels) => {
                         let fl = &mut u.frames[at];
                         fl.render_ms = fl.render_ms.max(result.render_ms);
+                        fl.render_total_ms += result.render_ms;
+                        fl.transfer_ms = fl.transfer_ms.max(result.transfer_ms);
+                        fl.transfer_bytes += result.bytes / n_views.max(1) as u64;
                         fl.batch_views = fl.batch_views.max(n_views as u32);
                         if let Some(slot) = fl.parts.get_mut(tag.part as usize) {
                             *slot = Some(Arc::clone(pixels));
@@ -962,6 +981,9 @@ impl MasterCore {
         let Some(i) = u.frames.iter().position(|f| f.job.frame == frame) else { return };
         let fl = u.frames.remove(i).expect("found");
         times.render_ms = fl.render_ms;
+        times.render_total_ms = fl.render_total_ms;
+        times.transfer_ms = fl.transfer_ms;
+        times.transfer_bytes = fl.transfer_bytes;
         let job_s = now.saturating_duration_since(fl.job.started_at).as_secs_f64();
         u.clock.frame_sent(now, job_s);
         self.metrics.frames.inc();
@@ -981,7 +1003,7 @@ impl MasterCore {
         if tasks_lost {
             let lost: Vec<TaskId> = self.in_flight.iter().filter(|(_, t)| &t.worker == worker).map(|(id, _)| *id).collect();
             for id in lost {
-                self.render_done(TaskResult { id, frames: Err(format!("worker {} went away", worker.0)), render_ms: 0.0 }, self.now);
+                self.render_done(TaskResult::failed(id, format!("worker {} went away", worker.0)), self.now);
             }
         }
         if self.workers.is_empty() && !self.users.is_empty() {

@@ -71,6 +71,14 @@ pub struct RenderTask {
     pub rays: u64,
     /// Pixels the proxy expects the object to cover, all views.
     pub est_pixels: u64,
+    /// The views will be composed by depth (objects of a multi-object scene): a remote
+    /// worker sends depth back only then, halving what crosses the network otherwise.
+    #[serde(default = "yes")]
+    pub needs_depth: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl RenderTask {
@@ -96,4 +104,21 @@ pub struct TaskResult {
     pub frames: Result<Vec<Arc<Frame>>, String>,
     /// Wall time the worker spent on the task, ms.
     pub render_ms: f64,
+    /// Getting the task to a remote worker and its result back, less the render (0 for
+    /// in-process workers), ms.
+    pub transfer_ms: f64,
+    /// Bytes of the result that crossed the network (0 in process).
+    pub bytes: u64,
+}
+
+impl TaskResult {
+    /// A result rendered in this process.
+    pub fn local(id: TaskId, frames: Result<Vec<Arc<Frame>>, String>, render_ms: f64) -> Self {
+        Self { id, frames, render_ms, transfer_ms: 0.0, bytes: 0 }
+    }
+
+    /// A task that did not render, and why.
+    pub fn failed(id: TaskId, why: impl Into<String>) -> Self {
+        Self::local(id, Err(why.into()), 0.0)
+    }
 }

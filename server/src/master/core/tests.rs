@@ -181,7 +181,7 @@ impl Sim {
                     } else {
                         Ok(task.views.iter().map(|_| Arc::new(Frame { width: 1, height: 1, rgba: vec![0; 4], depth: vec![1.0] })).collect())
                     };
-                    self.renders.push((done, TaskResult { id: task.id, frames, render_ms: secs * 1e3 }));
+                    self.renders.push((done, TaskResult::local(task.id, frames, secs * 1e3)));
                     self.routes.push((worker, task.id));
                     self.tasks.push(task);
                 }
@@ -529,7 +529,7 @@ fn stale_and_foreign_results_are_ignored() {
     sim.run_until(200);
     // A result for a task that does not exist, one with the wrong number of views, frames
     // for unknown sessions: no panic, no effect on the stream.
-    sim.core.handle_input(sim.now, Input::RenderDone(TaskResult { id: TaskId(999_999), frames: Ok(vec![]), render_ms: 1.0 }));
+    sim.core.handle_input(sim.now, Input::RenderDone(TaskResult::local(TaskId(999_999), Ok(vec![]), 1.0)));
     sim.core.handle_input(sim.now, Input::FrameSent { session: "nobody".into(), frame: 1, times: FrameTimes::default() });
     sim.core.handle_input(sim.now, Input::FrameFailed { session: "a".into(), frame: 12345, error: "x".into() });
     sim.core.handle_input(sim.now, Input::Pose { session: "nobody".into(), bytes: bytes::Bytes::new() });
