@@ -53,7 +53,18 @@ fn generate_info_and_bench_print_tables() {
 
 #[test]
 fn bad_input_is_a_clear_error() {
+    let missing = tmp("missing.json");
+    std::fs::write(&missing, r#"{"objects":[{"asset":"builtin:lego"},{"asset":"nowhere.nolf"}]}"#).unwrap();
+    let skewed = tmp("skewed.json");
+    std::fs::write(&skewed, r#"{"objects":[{"asset":"builtin:trio-small","world_from_object":{"rotation":[0,0,0.5,0.5]}}]}"#).unwrap();
+    let crowded = tmp("crowded.json");
+    std::fs::write(&crowded, format!(r#"{{"objects":[{}]}}"#, vec![r#"{"asset":"builtin:trio-small"}"#; 100].join(","))).unwrap();
+    let (missing, skewed, crowded) = (missing.display().to_string(), skewed.display().to_string(), crowded.display().to_string());
     for (args, words) in [
+        (vec!["render", missing.as_str(), "--backend", "cpu"], "nowhere.nolf"),
+        (vec!["render", skewed.as_str(), "--backend", "cpu"], "unit quaternion"),
+        (vec!["render", crowded.as_str(), "--backend", "cpu"], "100 objects; at most 16"),
+        (vec!["worker", "--scene", "builtin:trio-small"], "needs --nats"),
         (vec!["render", "/nonexistent.nolf"], "nonexistent.nolf"),
         (vec!["render", "builtin:teapot"], "unknown procedural scene"),
         (vec!["render", "builtin:trio-small", "--size", "100000x10", "--backend", "cpu"], "outside"),
