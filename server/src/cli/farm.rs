@@ -90,10 +90,13 @@ pub struct FarmReport {
     pub width: u32,
     pub height: u32,
     pub runs: Vec<FarmRun>,
-    /// Gap in decoded frames around each worker kill, ms.
+    /// Per kill: from the kill to the first frame decoded after it, ms.
     pub failover_gaps_ms: Vec<f64>,
     /// The longest of them.
     pub failover_gap_ms: f64,
+    /// Per kill: the longest time between two decoded frames around it (includes the
+    /// ordinary frame interval), ms.
+    pub frame_gaps_ms: Vec<f64>,
     /// Sessions that ended during the failover run (must be 0).
     pub sessions_lost: usize,
 }
@@ -260,18 +263,17 @@ pub fn run(args: FarmArgs) -> Result<()> {
         }
         Ok::<_, anyhow::Error>((run.await??, kills))
     })?;
-    // Gap in decoded frames spanning each kill (decode times are from the first pose, which
-    // the replay sent right after the master's 1.5 s discovery wait).
-    let gaps: Vec<f64> = kill_times
+    // Decode times are from the first pose, which the replay sent right after the master's
+    // 1.5 s discovery wait, as the kill times are.
+    let times = &report.decoded_at_ms;
+    let gaps: Vec<f64> = kill_times.iter().map(|&t| times.iter().find(|&&d| d > t).map_or(f64::INFINITY, |d| d - t)).collect();
+    let frame_gaps: Vec<f64> = kill_times
         .iter()
-        .map(|&t| {
-            let times = &report.decoded_at_ms;
-            times.windows(2).filter(|w| w[1] >= t - 50.0 && w[0] <= t + 2000.0).map(|w| w[1] - w[0]).fold(0.0, f64::max)
-        })
+        .map(|&t| times.windows(2).filter(|w| w[1] >= t && w[0] <= t + 2000.0).map(|w| w[1] - w[0]).fold(0.0, f64::max))
         .collect();
     let sessions_lost = usize::from(report.frames_decoded == 0);
     let failover_gap_ms = gaps.iter().copied().fold(0.0, f64::max);
-    let report = FarmReport { width: size.0, height: size.1, runs, failover_gaps_ms: gaps, failover_gap_ms, sessions_lost };
+    let report = FarmReport { width: size.0, height: size.1, runs, failover_gaps_ms: gaps, failover_gap_ms, frame_gaps_ms: frame_gaps, sessions_lost };
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -327,6 +329,15 @@ pub fn format_report(r: &FarmReport) -> String {
             u.render_sum_ms
         );
     }
-    let _ = writeln!(out, "\nfailover: a worker killed {} times mid-stream; gap in decoded frames around each kill: {:?} ms (longest {:.0} ms); sessions lost: {}", r.failover_gaps_ms.len(), r.failover_gaps_ms.iter().map(|g| g.round()).collect::<Vec<_>>(), r.failover_gap_ms, r.sessions_lost);
+    let round = |v: &[f64]| v.iter().map(|g| g.round()).collect::<Vec<_>>();
+    let _ = writeln!(
+        out,
+        "\nfailover: a worker killed {} times mid-stream; from each kill to the next decoded frame: {:?} ms (longest {:.0} ms); longest frame interval around each kill: {:?} ms; sessions lost: {}",
+        r.failover_gaps_ms.len(),
+        round(&r.failover_gaps_ms),
+        r.failover_gap_ms,
+        round(&r.frame_gaps_ms),
+        r.sessions_lost
+    );
     out
 }

@@ -33,9 +33,9 @@ use crate::worker::{
 };
 
 /// A task not accepted within this time is re-issued.
-pub const ACCEPT_TIMEOUT: Duration = Duration::from_millis(250);
+pub const ACCEPT_TIMEOUT: Duration = Duration::from_millis(200);
 /// A rendering worker silent for this long is taken for dead.
-pub const SILENCE: Duration = Duration::from_millis(200);
+pub const SILENCE: Duration = Duration::from_millis(160);
 /// Attempts per task (the first and the re-issues).
 pub const MAX_ATTEMPTS: u32 = 3;
 /// Discovery asks every worker for its info this often…
