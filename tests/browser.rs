@@ -79,3 +79,62 @@ fn the_viewer_reconnects_after_the_server_restarts() {
     assert!(status.success() && report["ok"] == true, "reconnect check failed: {report}");
     assert!(report["banner"].as_str().is_some_and(|b| !b.is_empty()), "the lost connection was not shown in words: {report}");
 }
+
+/// The headset page in headless Chromium with `iwer` as the WebXR runtime (a Meta Quest 3,
+/// stereo): it enters an immersive session, sends both eyes per pose, and each half of the
+/// decoded frame matches a direct render of that eye's camera (PSNR ≥ 30 dB), with the
+/// parallax the right way round. Then the quilt page streams. See `tests/browser/xr.mjs`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_headset_page_streams_both_eyes_in_webxr() {
+    use base64::Engine;
+    use nephele::wire::{FrameLayout, check_pose, media::background_of};
+    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+    assert!(PathBuf::from(&chromium).exists(), "Chromium not found at {chromium}: install the `chromium` package (tests/run does)");
+    assert!(repo().join("tests/browser/node_modules/iwer").exists(), "iwer is missing: run `npm ci --prefix tests/browser` (tests/run does)");
+    let (server, catalog) = nephele_e2e::start_server(core_config(4)).await;
+    let url = format!("http://{}/", server.addr);
+    let script = repo().join("tests/browser/xr.mjs");
+    let output = tokio::task::spawn_blocking(move || Command::new("node").arg(script).arg(url).env("CHROMIUM", chromium).output()).await.unwrap().expect("running node");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let last = stdout.lines().last().unwrap_or_default();
+    let report: serde_json::Value = serde_json::from_str(last).unwrap_or_else(|_| panic!("no JSON report: {stdout} {}", String::from_utf8_lossy(&output.stderr)));
+    let brief: serde_json::Value = report.as_object().unwrap().iter().filter(|(k, _)| !k.ends_with("B64")).map(|(k, v)| (k.clone(), v.clone())).collect();
+    println!("{brief}");
+    assert!(output.status.success() && report["ok"] == true, "xr check failed: {brief}");
+    assert_eq!(report["xrActive"], true);
+    let views = report["viewsPerPose"].as_array().unwrap();
+    assert!(!views.is_empty() && views.iter().all(|v| v == 2), "every pose in the session carries two views: {views:?}");
+    assert!(report["quiltFramesDecoded"].as_u64().unwrap() >= 3, "{brief}");
+
+    let b64 = base64::engine::general_purpose::STANDARD;
+    let pose = b64.decode(report["poseB64"].as_str().unwrap()).unwrap();
+    let rgba = b64.decode(report["rgbaB64"].as_str().unwrap()).unwrap();
+    let (w, h) = (report["width"].as_u64().unwrap() as u32, report["height"].as_u64().unwrap() as u32);
+    assert_eq!(rgba.len(), (w * h * 4) as usize);
+    let pose = check_pose(&pose, &FrameLayout::Views { width: w, height: h }).expect("the page's pose is valid");
+    assert_eq!(pose.views.len(), 2);
+    let mut centroids = Vec::new();
+    for (i, v) in pose.views.iter().enumerate() {
+        let direct = catalog.render_scene("trio", v.view, pose.instance, background_of(nephele_signaling::Mode::Vr)).unwrap();
+        let r = v.viewport;
+        let half: Vec<u8> = (r.y..r.y + r.height).flat_map(|y| rgba[(4 * (y * w + r.x)) as usize..(4 * (y * w + r.x + r.width)) as usize].to_vec()).collect();
+        let psnr = nephele::client::replay::psnr_rgb(&half, &direct.rgba);
+        println!("eye {i}: viewport {r:?}, PSNR {psnr:.2} dB against a direct render");
+        assert!(psnr >= 30.0, "eye {i}: {psnr:.2} dB < 30");
+        // Mean x of the object's pixels in this eye's image.
+        let (mut sum, mut n) = (0.0, 0.0);
+        for (j, p) in half.chunks_exact(4).enumerate() {
+            if p[..3].iter().any(|&c| c < 200) {
+                sum += (j as u32 % r.width) as f64;
+                n += 1.0;
+            }
+        }
+        assert!(n > 50.0, "eye {i} sees the object ({n} pixels)");
+        centroids.push(sum / n);
+    }
+    // Eye 0 is the left one (its camera sits left of eye 1's): the object, in front of
+    // both, appears further right to it.
+    let d = pose.views[1].view.world_from_camera.w_axis - pose.views[0].view.world_from_camera.w_axis;
+    assert!(d.truncate().dot(pose.views[0].view.world_from_camera.x_axis.truncate()) > 0.0, "eye 1 is right of eye 0");
+    assert!(centroids[0] > centroids[1] + 1.0, "parallax: object at x {:.1} (left eye) vs {:.1} (right eye)", centroids[0], centroids[1]);
+}

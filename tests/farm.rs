@@ -27,6 +27,7 @@ fn opts(url: String, scene: &str, size: (u32, u32), fps: u32) -> ReplayOptions {
             fps,
             token: None,
             keep_pixels: false,
+            quilt: None,
         },
         anchor: None,
         quality_every: 0,

@@ -40,7 +40,7 @@ async fn start_server(capacity: u32) -> (SocketAddr, Arc<Catalog>) {
 }
 
 fn client_opts(addr: SocketAddr, mode: Mode, width: u32, height: u32) -> ClientOptions {
-    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, keep_pixels: true }
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, keep_pixels: true, quilt: None }
 }
 
 fn short_trace(name: &str, poses: usize) -> Trace {

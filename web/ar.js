@@ -7,10 +7,10 @@
 // where the tapped ray meets the ground plane z = 0; the slider sets its uniform scale.
 // Poses are sent with the 64-byte world_from_anchor appended (168 bytes).
 
-import {
-  OrbitCamera, attachOrbitControls, Connection, ensureCapturePermission,
-  fetchScenes, readPageOptions, renderStatus,
-} from './nephele.js';
+import { OrbitCamera, attachOrbitControls } from './camera.js';
+import { Connection, ensureCapturePermission, fetchScenes, readPageOptions } from './connection.js';
+import { orbitPose } from './pose.js';
+import { renderStatus } from './hud.js';
 
 const $ = (id) => document.getElementById(id);
 const canvas = $('canvas');
@@ -34,7 +34,10 @@ const conn = new Connection({
   mode: 'ar',
   video,
   camera,
-  anchor: anchorMatrix,
+  // The orbit camera as NPO1 with the anchor appended (168 bytes), every 20 ms.
+  pose: (seq, tClientMs) => orbitPose(camera, {
+    seq, tClientMs, width: conn.params.width, height: conn.params.height, worldFromAnchor: anchorMatrix(),
+  }),
   onSession(msg) {
     if (msg.scene !== cameraScene && Array.isArray(msg.center)) {
       camera.reset(msg.center, msg.radius);
@@ -229,7 +232,7 @@ async function main() {
   canvas.width = options.width;
   canvas.height = options.height;
 
-  // The camera feed doubles as the capture grant nephele.js needs for loopback ICE.
+  // The camera feed doubles as the capture grant connection.js needs for loopback ICE.
   const stream = await ensureCapturePermission({ video: { facingMode: 'environment' }, audio: false });
   if (stream && stream.getVideoTracks().length) {
     cameraOk = true;

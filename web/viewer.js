@@ -2,12 +2,13 @@
 // connects on load and again when a picker changes, steers an orbit camera with mouse/touch
 // (left-drag orbit, wheel zoom, right/shift-drag pan; one finger orbit, two fingers
 // pinch/pan), and shows the HUD (fps, latency, bitrate, resolution, frame, state) and an
-// error banner. The session itself (signaling, WebRTC, poses, stats) is in nephele.js.
+// error banner. The session itself (signaling, WebRTC, stats) is in connection.js, the
+// camera in camera.js, the pose message in pose.js and the HUD in hud.js.
 
-import {
-  OrbitCamera, attachOrbitControls, Connection, ensureCapturePermission,
-  fetchScenes, readPageOptions, renderStatus,
-} from './nephele.js';
+import { OrbitCamera, attachOrbitControls } from './camera.js';
+import { Connection, ensureCapturePermission, fetchScenes, readPageOptions } from './connection.js';
+import { orbitPose } from './pose.js';
+import { renderStatus } from './hud.js';
 
 const $ = (id) => document.getElementById(id);
 const video = $('video');
@@ -22,6 +23,8 @@ const conn = new Connection({
   mode: 'viewer',
   video,
   camera,
+  // The orbit camera as NPO1 at the joined size, every 20 ms.
+  pose: (seq, tClientMs) => orbitPose(camera, { seq, tClientMs, width: conn.params.width, height: conn.params.height }),
   onSession(msg) {
     // First session of a scene: frame the asset. A reconnect to the same scene keeps the view.
     if (msg.scene !== cameraScene && Array.isArray(msg.center)) {

@@ -19,6 +19,7 @@ pub mod scene;
 pub mod sh;
 pub mod synth;
 pub mod train;
+pub mod views;
 
 #[cfg(test)]
 mod test_util;

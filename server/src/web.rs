@@ -79,9 +79,16 @@ async fn wait_for(secs: u64, done: impl Fn() -> bool) -> Option<()> {
 const PAGES: &[(&str, &str, &str)] = &[
     ("/index.html", "text/html; charset=utf-8", include_str!("../../web/index.html")),
     ("/ar.html", "text/html; charset=utf-8", include_str!("../../web/ar.html")),
-    ("/nephele.js", "text/javascript; charset=utf-8", include_str!("../../web/nephele.js")),
+    ("/vr.html", "text/html; charset=utf-8", include_str!("../../web/vr.html")),
+    ("/quilt.html", "text/html; charset=utf-8", include_str!("../../web/quilt.html")),
+    ("/camera.js", "text/javascript; charset=utf-8", include_str!("../../web/camera.js")),
+    ("/pose.js", "text/javascript; charset=utf-8", include_str!("../../web/pose.js")),
+    ("/connection.js", "text/javascript; charset=utf-8", include_str!("../../web/connection.js")),
+    ("/hud.js", "text/javascript; charset=utf-8", include_str!("../../web/hud.js")),
     ("/viewer.js", "text/javascript; charset=utf-8", include_str!("../../web/viewer.js")),
     ("/ar.js", "text/javascript; charset=utf-8", include_str!("../../web/ar.js")),
+    ("/vr.js", "text/javascript; charset=utf-8", include_str!("../../web/vr.js")),
+    ("/quilt.js", "text/javascript; charset=utf-8", include_str!("../../web/quilt.js")),
     ("/style.css", "text/css; charset=utf-8", include_str!("../../web/style.css")),
 ];
 
@@ -109,9 +116,27 @@ pub fn signaling_router(signaling: nephele_signaling::SignalState) -> Router {
     with_pages(nephele_signaling::app(signaling)).route("/scenes", get(move || std::future::ready(scenes()))).fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
 }
 
+/// Browser libraries from npm, bundled by `server/build.rs` (or a script that says what to
+/// install when the build had no npm).
+const VENDOR: &[(&str, &[u8])] = &[
+    ("/vendor/aframe.min.js", include_bytes!(concat!(env!("OUT_DIR"), "/vendor/aframe.min.js"))),
+    ("/vendor/holoplay-core.min.js", include_bytes!(concat!(env!("OUT_DIR"), "/vendor/holoplay-core.min.js"))),
+];
+
 fn with_pages(mut router: Router) -> Router {
     for &(path, mime, body) in PAGES {
         router = router.route(path, get(move || async move { page(mime, body) }));
+    }
+    for &(path, body) in VENDOR {
+        router = router.route(
+            path,
+            get(move || async move {
+                let mut r = body.into_response();
+                r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("text/javascript; charset=utf-8"));
+                r.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("max-age=86400"));
+                r
+            }),
+        );
     }
     let (_, mime, index) = PAGES[0];
     router.route("/", get(move || async move { page(mime, index) }))

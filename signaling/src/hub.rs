@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::protocol::{ErrorCode, Mode, ToClient, ToMaster, ToPeer, ToSignal};
+use crate::protocol::{ErrorCode, Mode, QuiltSpec, ToClient, ToMaster, ToPeer, ToSignal};
 
 /// Identifies one websocket connection; chosen by the IO edge.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -336,6 +336,7 @@ impl Hub {
                     height,
                     fps,
                     token,
+                    quilt,
                 },
             ) => self.join(
                 conn,
@@ -345,6 +346,10 @@ impl Hub {
                     width,
                     height,
                     fps,
+                    quilt: match mode {
+                        Mode::Quilt => Some(quilt.unwrap_or_default()),
+                        _ => quilt,
+                    },
                 },
                 token.as_deref(),
             ),
@@ -483,6 +488,7 @@ impl Hub {
             width,
             height,
             fps,
+            quilt,
         } = req;
         Ok(vec![
             Outgoing::client(
@@ -501,6 +507,7 @@ impl Hub {
                     width,
                     height,
                     fps,
+                    quilt,
                 },
             ),
         ])
@@ -688,13 +695,21 @@ struct JoinRequest {
     width: u32,
     height: u32,
     fps: u32,
+    quilt: Option<QuiltSpec>,
 }
 
 impl JoinRequest {
     fn validate(&self) -> Result<(), SignalError> {
         validate_name("scene", &self.scene)?;
+        if self.quilt.is_some() && self.mode != Mode::Quilt {
+            return Err(SignalError::BadRequest("a quilt layout is only for mode \"quilt\"".into()));
+        }
         nephele_limits::check_stream_size(self.width, self.height)
             .and_then(|()| nephele_limits::check_fps(self.fps))
+            .and_then(|()| match self.quilt {
+                Some(q) => nephele_limits::check_quilt(q.cols, q.rows, q.cone_deg, self.width, self.height),
+                None => Ok(()),
+            })
             .map_err(|e| SignalError::BadRequest(e.to_string()))
     }
 

@@ -13,5 +13,5 @@ pub mod protocol;
 pub mod server;
 
 pub use hub::{ConnId, Hub, HubConfig, HubStats, MasterStats, Outgoing, SignalError};
-pub use protocol::{ErrorCode, Mode, ToClient, ToMaster, ToPeer, ToSignal};
+pub use protocol::{ErrorCode, Mode, QuiltSpec, ToClient, ToMaster, ToPeer, ToSignal};
 pub use server::{SignalState, app, serve};

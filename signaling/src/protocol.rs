@@ -35,6 +35,23 @@ pub enum Mode {
     Quilt,
 }
 
+/// A Looking Glass quilt's layout, asked for in a `quilt` mode join (defaults: 5×9 views
+/// over 40°, the 16"/32" Gen2 displays). The frame must split into equal tiles
+/// (`nephele_limits::check_quilt`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct QuiltSpec {
+    pub cols: u32,
+    pub rows: u32,
+    /// Full horizontal view cone, degrees.
+    pub cone_deg: f32,
+}
+
+impl Default for QuiltSpec {
+    fn default() -> Self {
+        Self { cols: 5, rows: 9, cone_deg: 40.0 }
+    }
+}
+
 /// Any message sent *to* signaling, by a client or by a master.
 ///
 /// The hub checks that each message suits the sender's role.
@@ -56,6 +73,9 @@ pub enum ToSignal {
         /// Shared secret; required when signaling is configured with a token.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         token: Option<String>,
+        /// Quilt layout (mode `quilt` only; defaults when absent).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        quilt: Option<QuiltSpec>,
     },
     /// Client: the WebRTC offer for its session (after `joined`).
     Offer {
@@ -178,6 +198,9 @@ pub enum ToMaster {
         height: u32,
         /// Frame rate in frames per second.
         fps: u32,
+        /// Quilt layout (mode `quilt` only, filled with the defaults when the client gave none).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        quilt: Option<QuiltSpec>,
     },
     /// The client's WebRTC offer.
     Offer {

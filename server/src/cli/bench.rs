@@ -203,7 +203,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
                 let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
                 let server = web::spawn_local(listener, Arc::clone(&catalog), cfg).await?;
                 let opts = replay::ReplayOptions {
-                    client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: true },
+                    client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: true, quilt: None },
                     anchor: None,
                     quality_every: 10,
                     save_dir: None,

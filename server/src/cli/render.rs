@@ -1,4 +1,4 @@
-//! `nephele render` (one view to PNG), `nephele generate` (procedural assets) and
+//! `nephele render` (one view, or a Looking Glass quilt of views, to PNG), `nephele generate` (procedural assets) and
 //! `nephele info` (an asset's metadata and memory).
 
 use std::path::PathBuf;
@@ -8,6 +8,7 @@ use glam::{DMat4, DVec3};
 use nephele_renderer::{
     Instance, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
     procedural::{self, ProceduralConfig, Scene},
+    views::{QuiltLayout, focal_distance},
 };
 
 use crate::{
@@ -55,6 +56,16 @@ pub struct RenderArgs {
     /// Step-size multiplier (speed/accuracy knob).
     #[arg(long, default_value_t = 1.0)]
     step_scale: f32,
+    /// Render a Looking Glass quilt of COLSxROWS views (e.g. 5x9) instead of one view;
+    /// `--size` is then one tile. Views are the camera moved sideways with off-axis frusta,
+    /// view 0 bottom-left (see `nephele_renderer::views`); all rendered in one batch. The
+    /// file name gets the `_qs{cols}x{rows}a{aspect}` suffix displays expect unless it
+    /// already has one.
+    #[arg(long)]
+    quilt: Option<String>,
+    /// The quilt's view cone, degrees.
+    #[arg(long, default_value_t = 40.0)]
+    cone: f32,
 }
 
 #[derive(clap::Args)]
@@ -79,6 +90,8 @@ pub struct InfoArgs {
 struct PoseFile {
     transform_matrix: [[f64; 4]; 4],
     camera_angle_x: Option<f64>,
+    /// `[fx, fy, cx, cy]` in pixels (an off-centre lens); overrides `camera_angle_x`.
+    intrinsics: Option<[f32; 4]>,
 }
 
 pub fn render(args: RenderArgs) -> Result<()> {
@@ -91,24 +104,56 @@ pub fn render(args: RenderArgs) -> Result<()> {
             let pose: PoseFile = serde_json::from_str(&text).with_context(|| format!("parsing pose {}", path.display()))?;
             let fov = pose.camera_angle_x.unwrap_or(args.fov.to_radians());
             let m = DMat4::from_cols_array_2d(&pose.transform_matrix).transpose();
-            View { world_from_camera: m, intrinsics: Intrinsics::from_fov_x(w, h, fov as f32) }
+            let intrinsics = match pose.intrinsics {
+                Some([fx, fy, cx, cy]) => Intrinsics { fx, fy, cx, cy, width: w, height: h },
+                None => Intrinsics::from_fov_x(w, h, fov as f32),
+            };
+            View { world_from_camera: m, intrinsics }
         }
         None => View::orbit(DVec3::ZERO, args.distance, args.azimuth, args.elevation, Intrinsics::from_fov_x(w, h, args.fov.to_radians() as f32)),
     };
+    view.validate().context("the camera")?;
+    let quilt = args.quilt.as_deref().map(|q| QuiltLayout::parse(q, args.cone)).transpose().map_err(anyhow::Error::msg)?;
+    // A quilt's focal plane goes through the orbit target (the origin).
+    let views = match quilt {
+        Some(q) => q.cameras(&view, focal_distance(&view, DVec3::ZERO, 1e-3)),
+        None => vec![view],
+    };
     let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
     let is_scene = args.asset.ends_with(".json") || crate::assets::BUILTIN_SCENE_FILES.iter().any(|(n, _)| args.asset == format!("builtin:{n}"));
-    let (frame, s) = if is_scene {
+    let (frames, s) = if is_scene {
         // A scene: every object rendered and composed by depth (timings summed).
         let catalog = Catalog::load(std::slice::from_ref(&args.asset), backend.as_ref(), settings)?;
         let t = std::time::Instant::now();
-        let frame = catalog.render_scene(&catalog.default_scene, view, Instance::default(), background)?;
-        let stats = RenderStats { total_ms: t.elapsed().as_secs_f64() * 1e3, rays: frame.depth.len() as u64, hits: frame.depth.iter().filter(|d| d.is_finite()).count() as u64, ..Default::default() };
-        (frame, stats)
+        let frames = views.iter().map(|v| catalog.render_scene(&catalog.default_scene, *v, Instance::default(), background)).collect::<Result<Vec<_>>>()?;
+        let (rays, hits) = frames.iter().fold((0, 0), |(r, h), f| (r + f.depth.len() as u64, h + f.depth.iter().filter(|d| d.is_finite()).count() as u64));
+        (frames, RenderStats { total_ms: t.elapsed().as_secs_f64() * 1e3, rays, hits, ..Default::default() })
     } else {
         let prepared = backend.prepare(load_asset(&args.asset)?)?;
-        let mut out = prepared.render(&[ViewRequest::new(view).with_background(background)], &settings)?;
-        (out.frames.remove(0), out.stats)
+        let requests: Vec<ViewRequest> = views.iter().map(|v| ViewRequest::new(*v).with_background(background)).collect();
+        let out = prepared.render(&requests, &settings)?;
+        (out.frames, out.stats)
     };
+    let (frame, out_path) = match quilt {
+        Some(q) => {
+            let mut rgba = vec![0u8; (q.views() * w * h * 4) as usize];
+            let qw = q.cols * w;
+            for (i, f) in frames.iter().enumerate() {
+                let (x, y) = q.tile_origin(i as u32, w, h);
+                for row in 0..h {
+                    let src = &f.rgba[(4 * row * w) as usize..(4 * (row + 1) * w) as usize];
+                    let at = (4 * ((y + row) * qw + x)) as usize;
+                    rgba[at..at + src.len()].copy_from_slice(src);
+                }
+            }
+            let stem = args.out.file_stem().and_then(|s| s.to_str()).unwrap_or("quilt");
+            let out = if stem.contains("_qs") { args.out.clone() } else { args.out.with_file_name(format!("{stem}{}.png", q.file_suffix(w, h))) };
+            let (fw, fh) = (qw, q.rows * h);
+            (nephele_renderer::Frame { width: fw, height: fh, rgba, depth: vec![f32::INFINITY; (fw * fh) as usize] }, out)
+        }
+        None => (frames.into_iter().next().expect("one view"), args.out.clone()),
+    };
+    let args = RenderArgs { out: out_path, ..args };
     let frame = &frame;
     if let Some(dir) = args.out.parent() {
         std::fs::create_dir_all(dir)?;
@@ -124,8 +169,11 @@ pub fn render(args: RenderArgs) -> Result<()> {
         eprintln!("note: no ray hit the object; check the camera");
     }
     println!(
-        "wrote {} ({w}×{h}, {}) — march {:.1} ms, network {:.1} ms, total {:.1} ms, {:.1}% of rays hit",
+        "wrote {} ({}×{}{}, {}) — march {:.1} ms, network {:.1} ms, total {:.1} ms, {:.1}% of rays hit",
         args.out.display(),
+        frame.width,
+        frame.height,
+        quilt.map_or(String::new(), |q| format!(", {} views of {w}×{h}", q.views())),
         backend.name(),
         s.march_ms,
         s.shade_ms,

@@ -79,7 +79,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
         }
     };
     let opts = replay::ReplayOptions {
-        client: ClientOptions { signal_url: args.signal, scene: args.scene, mode, width, height, fps: args.fps, token: args.token, keep_pixels: reference.is_some() || args.save.is_some() },
+        client: ClientOptions { signal_url: args.signal, scene: args.scene, mode, width, height, fps: args.fps, token: args.token, keep_pixels: reference.is_some() || args.save.is_some(), quilt: None },
         anchor: None,
         quality_every: args.quality_every,
         save_dir: args.save,

@@ -51,6 +51,8 @@ pub struct ClientOptions {
     pub token: Option<String>,
     /// Keep decoded pixels (PSNR, saving frames); latency-only runs can skip the copy.
     pub keep_pixels: bool,
+    /// Mode `quilt`: the layout to ask for (`None`: the master's default, 5×9 over 40°).
+    pub quilt: Option<nephele_signaling::QuiltSpec>,
 }
 
 /// One decoded video frame.
@@ -99,6 +101,7 @@ impl StreamClient {
             height: opts.height,
             fps: opts.fps,
             token: opts.token.clone(),
+            quilt: opts.quilt,
         };
         ws_tx.send(Message::text(serde_json::to_string(&join)?)).await?;
         match next_signal(&mut ws_rx).await? {

@@ -28,7 +28,7 @@ use tokio_tungstenite::tungstenite::Message;
 use super::{
     compositor::{ComposeChoice, Compositor},
     core::{
-        CoreConfig, EncodeJob, Input, JoinRequest, MasterCore, Output,
+        CoreConfig, EncodeJob, EncodeView, Input, JoinRequest, MasterCore, Output,
         task::{RenderTask, TaskId, TaskResult, WorkerId},
     },
     nats_farm::NatsFarm,
@@ -189,7 +189,7 @@ fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mp
                 tracing::info!(%master, "registered with signaling");
                 Some(Input::SignalingUp)
             }
-            ToMaster::Join { session, scene, mode, width, height, fps } => Some(Input::Join(JoinRequest { session, scene, mode, width, height, fps })),
+            ToMaster::Join { session, scene, mode, width, height, fps, quilt } => Some(Input::Join(JoinRequest { session, scene, mode, width, height, fps, quilt })),
             ToMaster::Offer { session, sdp } => {
                 command(sessions, &session, PeerCommand::Offer(sdp));
                 None
@@ -339,35 +339,19 @@ fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>, co
     });
 }
 
-/// Blocking: compose the objects if several, upscale to the stream size if needed, convert
-/// and encode.
+/// Blocking: compose each view's objects if several, upscale each view to its viewport if
+/// needed, tile the views into the frame, convert and encode.
 fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, compositor: &Compositor) -> (FrameEncoder, Result<(Bytes, FrameTimes), String>) {
     let _span = tracing::trace_span!("frame", session = %job.session, frame = job.frame, pose = job.pose_seq).entered();
     let (w, h) = (job.width, job.height);
     let t_compose = Instant::now();
-    let composed;
-    let p = match job.compose_over {
-        Some(background) if job.parts.len() > 1 => match compositor.compose(&job.parts, background) {
-            Ok(frame) => {
-                composed = frame;
-                &composed
-            }
-            Err(e) => return (encoder, Err(format!("compose: {e}"))),
-        },
-        _ => match job.parts.first() {
-            Some(p) => p.as_ref(),
-            None => return (encoder, Err("a frame with no rendered parts (internal error)".into())),
-        },
+    let frame = match assemble(job, compositor) {
+        Ok(f) => f,
+        Err(e) => return (encoder, Err(e)),
     };
     let compose_ms = t_compose.elapsed().as_secs_f64() * 1e3;
     let ready_ms = job.started_at.elapsed().as_secs_f64() * 1e3;
-    let upscaled;
-    let rgba: &[u8] = if (p.width, p.height) == (w, h) {
-        &p.rgba
-    } else {
-        upscaled = upscale_bilinear(&p.rgba, p.width, p.height, w, h);
-        &upscaled
-    };
+    let rgba: &[u8] = &frame;
     if job.idr {
         encoder.force_idr();
     }
@@ -380,6 +364,52 @@ fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, co
         })
         .map_err(|e| format!("encode: {e}"));
     (encoder, result)
+}
+
+/// A view's pixels at its viewport size: its objects composed by depth (if several), then
+/// upscaled from the render scale.
+fn view_pixels<'a>(view: &'a EncodeView, compose_over: Option<glam::Vec3>, compositor: &Compositor) -> Result<std::borrow::Cow<'a, [u8]>, String> {
+    use std::borrow::Cow;
+    let composed = match compose_over {
+        Some(background) if view.parts.len() > 1 => Some(compositor.compose(&view.parts, background).map_err(|e| format!("compose: {e}"))?),
+        _ => None,
+    };
+    let (vw, vh) = (view.viewport.width, view.viewport.height);
+    let (pw, ph) = match (&composed, view.parts.first()) {
+        (Some(c), _) => (c.width, c.height),
+        (None, Some(p)) => (p.width, p.height),
+        (None, None) => return Err("a view with no rendered parts (internal error)".into()),
+    };
+    Ok(match composed {
+        Some(c) if (pw, ph) == (vw, vh) => Cow::Owned(c.rgba),
+        Some(c) => Cow::Owned(upscale_bilinear(&c.rgba, pw, ph, vw, vh)),
+        None if (pw, ph) == (vw, vh) => Cow::Borrowed(&view.parts[0].rgba[..]),
+        None => Cow::Owned(upscale_bilinear(&view.parts[0].rgba, pw, ph, vw, vh)),
+    })
+}
+
+/// The frame's RGBA: one view filling it, or the views tiled at their viewports over black.
+fn assemble<'a>(job: &'a EncodeJob, compositor: &Compositor) -> Result<std::borrow::Cow<'a, [u8]>, String> {
+    let (w, h) = (job.width, job.height);
+    if let [view] = &job.views[..]
+        && view.viewport == crate::wire::Viewport::full(w, h)
+    {
+        return view_pixels(view, job.compose_over, compositor);
+    }
+    let mut frame = [0u8, 0, 0, 255].repeat(w as usize * h as usize);
+    for view in &job.views {
+        let pixels = view_pixels(view, job.compose_over, compositor)?;
+        let r = view.viewport;
+        if r.x + r.width > w || r.y + r.height > h {
+            return Err(format!("view at {},{} {}x{} is outside the {w}x{h} frame (internal error)", r.x, r.y, r.width, r.height));
+        }
+        let row_bytes = 4 * r.width as usize;
+        for (y, src) in pixels.chunks_exact(row_bytes).enumerate() {
+            let at = 4 * ((r.y as usize + y) * w as usize + r.x as usize);
+            frame[at..at + row_bytes].copy_from_slice(src);
+        }
+    }
+    Ok(std::borrow::Cow::Owned(frame))
 }
 
 /// One session's WebRTC connection: answers, trickles ICE, sends what it is told in order,

@@ -31,11 +31,21 @@ pub const MAX_SIGNAL_MESSAGE_BYTES: usize = 64 * 1024;
 /// Longest message on the pose data channel, bytes; longer ones are refused unread.
 pub const MAX_POSE_MESSAGE_BYTES: usize = 4096;
 
-/// Why a stream size or frame rate was refused; the text names the limit.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Most views one pose message may carry (a headset's two eyes, a CAVE's walls).
+pub const MAX_VIEWS_PER_POSE: usize = 8;
+/// Most views of a Looking Glass quilt (the largest common layout is 11×6 = 66).
+pub const MAX_QUILT_VIEWS: u32 = 100;
+/// Widest quilt view cone, degrees.
+pub const MAX_QUILT_CONE_DEG: f32 = 120.0;
+
+/// Why a stream size, frame rate or quilt layout was refused; the text names the limit.
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum LimitError {
     StreamSize { width: u32, height: u32 },
     Fps { fps: u32 },
+    QuiltViews { cols: u32, rows: u32 },
+    QuiltTiles { cols: u32, rows: u32, width: u32, height: u32 },
+    QuiltCone { cone_deg: f32 },
 }
 
 impl std::fmt::Display for LimitError {
@@ -47,6 +57,11 @@ impl std::fmt::Display for LimitError {
                  {MAX_STREAM_LONG_EDGE_PX}x{MAX_STREAM_SHORT_EDGE_PX} (or {MAX_STREAM_SHORT_EDGE_PX}x{MAX_STREAM_LONG_EDGE_PX} portrait)"
             ),
             Self::Fps { fps } => write!(f, "fps {fps} is outside {MIN_FPS}..={MAX_FPS}"),
+            Self::QuiltViews { cols, rows } => write!(f, "a {cols}x{rows} quilt is outside 1..={MAX_QUILT_VIEWS} views"),
+            Self::QuiltTiles { cols, rows, width, height } => {
+                write!(f, "a {width}x{height} frame does not split into {cols}x{rows} equal tiles (each edge must divide evenly)")
+            }
+            Self::QuiltCone { cone_deg } => write!(f, "quilt view cone {cone_deg} degrees is outside (0, {MAX_QUILT_CONE_DEG}]"),
         }
     }
 }
@@ -67,6 +82,21 @@ pub fn check_stream_size(width: u32, height: u32) -> Result<(), LimitError> {
 /// Checks a requested frame rate against [`MIN_FPS`]..=[`MAX_FPS`].
 pub fn check_fps(fps: u32) -> Result<(), LimitError> {
     if (MIN_FPS..=MAX_FPS).contains(&fps) { Ok(()) } else { Err(LimitError::Fps { fps }) }
+}
+
+/// Checks a quilt layout for a frame: `cols × rows` views within [`MAX_QUILT_VIEWS`], tiles
+/// of equal whole pixels, a view cone in (0, [`MAX_QUILT_CONE_DEG`]].
+pub fn check_quilt(cols: u32, rows: u32, cone_deg: f32, width: u32, height: u32) -> Result<(), LimitError> {
+    if cols == 0 || rows == 0 || u64::from(cols) * u64::from(rows) > u64::from(MAX_QUILT_VIEWS) {
+        return Err(LimitError::QuiltViews { cols, rows });
+    }
+    if width % cols != 0 || height % rows != 0 || width < cols || height < rows {
+        return Err(LimitError::QuiltTiles { cols, rows, width, height });
+    }
+    if !(cone_deg > 0.0 && cone_deg <= MAX_QUILT_CONE_DEG) {
+        return Err(LimitError::QuiltCone { cone_deg });
+    }
+    Ok(())
 }
 
 /// Whether a rendered image size is within [`MAX_RENDER_EDGE_PX`] and [`MAX_RENDER_PIXELS`].
@@ -93,5 +123,24 @@ mod tests {
         assert!(check_fps(1).is_ok() && check_fps(120).is_ok());
         assert!(check_fps(0).is_err() && check_fps(1_000_000).unwrap_err().to_string().contains("1..=120"));
         assert!(render_size_ok(7680, 4320) && render_size_ok(8192, 1) && !render_size_ok(8193, 1) && !render_size_ok(8192, 8192));
+    }
+
+    #[test]
+    fn quilt_layouts_are_checked() {
+        assert!(check_quilt(5, 9, 40.0, 1200, 2880).is_ok());
+        assert!(check_quilt(11, 6, 35.0, 11, 6).is_ok());
+        for (cols, rows, cone, w, h) in [
+            (0, 9, 40.0, 1200, 2880),
+            (10, 11, 40.0, 1100, 1100),
+            (u32::MAX, 2, 40.0, 100, 100),
+            (5, 9, 40.0, 1201, 2880),
+            (5, 9, 40.0, 4, 2880),
+            (5, 9, 0.0, 1200, 2880),
+            (5, 9, f32::NAN, 1200, 2880),
+            (5, 9, 121.0, 1200, 2880),
+        ] {
+            let e = check_quilt(cols, rows, cone, w, h).unwrap_err();
+            assert!(!e.to_string().is_empty());
+        }
     }
 }

@@ -43,7 +43,7 @@ use self::{
     task::{RenderTask, TaskClass, TaskId, TaskResult, TaskView, ViewTag, WorkerId},
 };
 use super::metrics::{MasterMetrics, SessionLabel};
-use crate::wire::{FrameTimes, ToViewer, media::background_of};
+use crate::wire::{FrameLayout, FrameTimes, QuiltInfo, ToViewer, Viewport, media::background_of};
 
 /// A peer must connect within this time of its join.
 pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(30);
@@ -129,6 +129,8 @@ pub struct JoinRequest {
     pub width: u32,
     pub height: u32,
     pub fps: u32,
+    /// Mode `quilt`: the layout (the defaults when the client gave none).
+    pub quilt: Option<nephele_signaling::QuiltSpec>,
 }
 
 /// Everything that can happen to a master.
@@ -163,16 +165,24 @@ pub enum Input {
     Timeout,
 }
 
-/// Encode this rendered (or reused) view for a session.
+/// One view of a frame to encode: its rendered objects and where it goes.
+#[derive(Debug, Clone)]
+pub struct EncodeView {
+    pub viewport: Viewport,
+    /// At the render scale, one per scene object; the edge composes them by depth over
+    /// the job's `compose_over` when there are several, then upscales to the viewport.
+    pub parts: Vec<Arc<Frame>>,
+}
+
+/// Encode this rendered (or reused) frame for a session: one view filling it, or several
+/// (stereo eyes, quilt tiles) tiled into it.
 #[derive(Debug, Clone)]
 pub struct EncodeJob {
     pub session: String,
     pub frame: u64,
     pub pose_seq: u32,
     pub idr: bool,
-    /// At the render scale, one per scene object; the edge composes them by depth over
-    /// `compose_over` when there are several, then upscales to `width`×`height`.
-    pub parts: Vec<Arc<Frame>>,
+    pub views: Vec<EncodeView>,
     pub compose_over: Option<Vec3>,
     pub width: u32,
     pub height: u32,
@@ -203,7 +213,8 @@ pub enum Output {
 #[derive(Debug)]
 struct FrameInFlight {
     job: FrameJob,
-    /// One per scene object, filled as renders (or reuses) come in.
+    /// One per view and scene object (`view · objects + object`), filled as renders (or
+    /// reuses) come in.
     parts: Vec<Option<Arc<Frame>>>,
     /// Longest render task of its parts, ms.
     render_ms: f64,
@@ -235,7 +246,7 @@ struct User {
     loaded_tasks: u32,
     /// Render scale of a moving camera (the scheduler's choice).
     scale: f32,
-    /// The user's own last render of each scene object, for a still camera.
+    /// The user's own last render of each view and scene object, for a still camera.
     last_parts: Vec<Option<(RequestKey, Arc<Frame>)>>,
     /// Frames started and not yet sent (at most two: one rendering, one encoding).
     frames: VecDeque<FrameInFlight>,
@@ -460,13 +471,13 @@ impl MasterCore {
                         Mode::Ar => background_of(Mode::Ar),
                         _ => self.scenes.get(&req.scene).map_or(background_of(req.mode), |s| s.background),
                     },
-                    session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)),
+                    session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)).with_layout(self.layout(&req)),
                     clock: UserClock::new(req.fps, now),
                     joined_at: now,
                     connected: false,
                     loaded_tasks: 0,
                     scale,
-                    last_parts: vec![None; self.scenes.get(&req.scene).map_or(1, |s| s.objects.len())],
+                    last_parts: Vec::new(),
                     frames: VecDeque::new(),
                     starved: false,
                     req: req.clone(),
@@ -481,16 +492,36 @@ impl MasterCore {
         }
     }
 
+    /// How a session's frame is made of views: a quilt's are the master's to derive (focal
+    /// plane through the scene's centre), the others come with each pose.
+    fn layout(&self, req: &JoinRequest) -> FrameLayout {
+        let (width, height) = (req.width, req.height);
+        match (req.quilt, self.scenes.get(&req.scene)) {
+            (Some(q), Some(scene)) => FrameLayout::Quilt {
+                width,
+                height,
+                layout: nephele_renderer::views::QuiltLayout { cols: q.cols, rows: q.rows, cone_rad: f64::from(q.cone_deg).to_radians() },
+                focal_target: scene.center.as_dvec3(),
+                min_focal: 0.1 * f64::from(scene.radius),
+            },
+            _ => FrameLayout::Views { width, height },
+        }
+    }
+
     /// `Err((metric reason, words for the user))`.
     fn admit(&self, req: &JoinRequest, now: Instant) -> Result<(), (&'static str, String)> {
         if self.users.contains_key(&req.session) {
             return Err(("duplicate", format!("session {} is already here", req.session)));
         }
-        if !matches!(req.mode, Mode::Viewer | Mode::Ar) {
-            return Err(("mode", format!("mode {:?} is not served yet (viewer and ar are)", req.mode)));
+        if req.quilt.is_some() != (req.mode == Mode::Quilt) {
+            return Err(("mode", "a quilt layout goes with mode quilt, and only with it".into()));
         }
         nephele_limits::check_stream_size(req.width, req.height)
             .and_then(|()| nephele_limits::check_fps(req.fps))
+            .and_then(|()| match req.quilt {
+                Some(q) => nephele_limits::check_quilt(q.cols, q.rows, q.cone_deg, req.width, req.height),
+                None => Ok(()),
+            })
             .map_err(|e| ("limits", e.to_string()))?;
         if !self.scenes.contains_key(&req.scene) {
             return Err(("scene", format!("unknown scene {:?}; this master has: {}", req.scene, self.scene_names().join(", "))));
@@ -579,6 +610,7 @@ impl MasterCore {
             width: u.req.width,
             height: u.req.height,
             fps: u.req.fps,
+            quilt: u.req.quilt.map(|q| QuiltInfo { cols: q.cols, rows: q.rows, cone_deg: q.cone_deg, tile_width: u.req.width / q.cols, tile_height: u.req.height / q.rows }),
         };
         self.tell(session, msg);
     }
@@ -793,15 +825,16 @@ impl MasterCore {
             let Some(scene) = self.scenes.get(&u.req.scene).cloned() else { continue };
             let Some(job) = u.session.poll_frame(now, u.scale) else { continue };
             u.clock.waiting_since = None;
-            let mut view = job.pose.view;
-            if job.render_scale < 1.0 {
-                view.intrinsics = view.intrinsics.scaled(job.render_scale);
-            }
             // Several objects render over black (premultiplied) and are composed later.
             let render_background = if scene.composed() { Vec3::ZERO } else { u.background };
+            let n_objects = scene.objects.len();
+            let n_parts = job.pose.views.len() * n_objects;
+            if u.last_parts.len() != n_parts {
+                u.last_parts = vec![None; n_parts];
+            }
             let mut fl = FrameInFlight {
-                job,
-                parts: vec![None; scene.objects.len()],
+                job: job.clone(),
+                parts: vec![None; n_parts],
                 render_ms: 0.0,
                 render_total_ms: 0.0,
                 transfer_ms: 0.0,
@@ -809,46 +842,54 @@ impl MasterCore {
                 batch_views: 0,
                 reused: true,
             };
-            for (part, object) in scene.objects.iter().enumerate() {
-                let instance = job.pose.instance.then_inside(&object.instance);
-                let key = RequestKey {
-                    asset: object.asset.clone(),
-                    intrinsics: view.intrinsics,
-                    background: render_background,
-                    instance,
-                    world_from_camera: view.world_from_camera,
-                };
-                let own = u.last_parts.get(part).and_then(Option::as_ref).filter(|(k, _)| job.same_as_previous && k.matches(&key)).map(|(_, f)| Arc::clone(f));
-                if let Some(pixels) = own.or_else(|| self.history.lookup(&key)) {
-                    self.metrics.history_hits.inc();
-                    fl.parts[part] = Some(pixels);
-                    continue;
+            for (v, frame_view) in job.pose.views.iter().enumerate() {
+                let mut view = frame_view.view;
+                if job.render_scale < 1.0 {
+                    view.intrinsics = view.intrinsics.scaled(job.render_scale);
                 }
-                let tag = ViewTag { session: c.session.clone(), frame: job.frame, part: part as u32 };
-                // An identical view already on a worker or in the queue: ride along.
-                let riding = self.in_flight.values_mut().flat_map(|t| t.views.iter_mut()).find(|(k, _)| k.matches(&key)).map(|(_, tags)| tags).or_else(|| {
-                    self.queue.iter_mut().flat_map(|(t, keys)| t.views.iter_mut().zip(keys.iter())).find(|(_, k)| k.matches(&key)).map(|(v, _)| &mut v.tags)
-                });
-                if let Some(tags) = riding {
-                    tags.push(tag);
-                    u.loaded_tasks += 1;
-                    self.metrics.history_hits.inc();
-                    self.history.hits += 1;
-                    continue;
-                }
-                let group = if self.cfg.batching { object.asset.clone() } else { format!("{}/{part}", c.session) };
-                let views = groups.entry(group).or_default();
-                // Identical requests in one round are rendered once.
-                match views.iter_mut().find(|(_, k)| k.matches(&key)) {
-                    Some((v, _)) => {
-                        v.tags.push(tag);
+                for (o, object) in scene.objects.iter().enumerate() {
+                    let part = v * n_objects + o;
+                    let instance = job.pose.instance.then_inside(&object.instance);
+                    let key = RequestKey {
+                        asset: object.asset.clone(),
+                        intrinsics: view.intrinsics,
+                        background: render_background,
+                        instance,
+                        world_from_camera: view.world_from_camera,
+                    };
+                    let own = u.last_parts.get(part).and_then(Option::as_ref).filter(|(k, _)| job.same_as_previous && k.matches(&key)).map(|(_, f)| Arc::clone(f));
+                    if let Some(pixels) = own.or_else(|| self.history.lookup(&key)) {
+                        self.metrics.history_hits.inc();
+                        fl.parts[part] = Some(pixels);
+                        continue;
+                    }
+                    let tag = ViewTag { session: c.session.clone(), frame: job.frame, part: part as u32 };
+                    // An identical view already on a worker or in the queue: ride along.
+                    let riding = self.in_flight.values_mut().flat_map(|t| t.views.iter_mut()).find(|(k, _)| k.matches(&key)).map(|(_, tags)| tags).or_else(|| {
+                        self.queue.iter_mut().flat_map(|(t, keys)| t.views.iter_mut().zip(keys.iter())).find(|(_, k)| k.matches(&key)).map(|(v, _)| &mut v.tags)
+                    });
+                    if let Some(tags) = riding {
+                        tags.push(tag);
+                        u.loaded_tasks += 1;
                         self.metrics.history_hits.inc();
                         self.history.hits += 1;
+                        continue;
                     }
-                    None => {
-                        fl.reused = false;
-                        let task_view = TaskView { view, instance, background: render_background, render_scale: job.render_scale, tags: vec![tag] };
-                        views.push((task_view, key));
+                    // All views of one user's frame (both eyes, every quilt tile) share a task.
+                    let group = if self.cfg.batching { object.asset.clone() } else { format!("{}/{o}", c.session) };
+                    let views = groups.entry(group).or_default();
+                    // Identical requests in one round are rendered once.
+                    match views.iter_mut().find(|(_, k)| k.matches(&key)) {
+                        Some((v, _)) => {
+                            v.tags.push(tag);
+                            self.metrics.history_hits.inc();
+                            self.history.hits += 1;
+                        }
+                        None => {
+                            fl.reused = false;
+                            let task_view = TaskView { view, instance, background: render_background, render_scale: job.render_scale, tags: vec![tag] };
+                            views.push((task_view, key));
+                        }
                     }
                 }
             }
@@ -899,20 +940,28 @@ impl MasterCore {
         if !fl.complete() {
             return;
         }
-        let composed = fl.parts.len() > 1;
-        let job = fl.job;
-        let parts: Vec<Arc<Frame>> = fl.parts.iter().flatten().cloned().collect();
+        let scene_objects = (fl.parts.len() / fl.job.pose.views.len().max(1)).max(1);
+        let composed = scene_objects > 1;
+        let job = &fl.job;
+        let views = job
+            .pose
+            .views
+            .iter()
+            .zip(fl.parts.chunks(scene_objects))
+            .map(|(fv, parts)| EncodeView { viewport: fv.viewport, parts: parts.iter().flatten().cloned().collect() })
+            .collect();
+        let (pose_seq, idr, started_at) = (job.pose.seq, job.idr, job.started_at);
         u.session.rendered(frame);
         self.outputs.push_back(Output::Encode(EncodeJob {
             session: session.into(),
             frame,
-            pose_seq: job.pose.seq,
-            idr: job.idr,
-            parts,
+            pose_seq,
+            idr,
+            views,
             compose_over: composed.then_some(u.background),
             width: u.req.width,
             height: u.req.height,
-            started_at: job.started_at,
+            started_at,
         }));
     }
 

@@ -19,12 +19,15 @@
 //! - with dynamic resolution, a camera at rest for [`REFINE_AFTER`] gets one full-size
 //!   frame (sent as an IDR), then that frame is reused while the camera stays put.
 
-use std::time::{Duration, Instant};
+use std::{
+    sync::Arc,
+    time::{Duration, Instant},
+};
 
-use nephele_renderer::{Instance, View};
+use nephele_renderer::Instance;
 
 pub use crate::wire::FrameTimes;
-use crate::wire::{FrameInfo, PoseMessage, PoseRejection};
+use crate::wire::{FrameInfo, FrameLayout, FrameView, PoseRejection, check_pose};
 
 /// With dynamic resolution, a camera still for this long gets one full-size frame.
 pub const REFINE_AFTER: Duration = Duration::from_millis(150);
@@ -38,18 +41,25 @@ pub const EARLY_START: f64 = 0.1;
 /// Shortest gap between two IDRs forced by picture-loss reports.
 pub const IDR_MIN_GAP: Duration = Duration::from_millis(250);
 
-/// A validated pose waiting for its frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// A validated pose waiting for its frame: one view or several (stereo eyes, quilt tiles),
+/// each with its place in the frame.
+#[derive(Debug, Clone, PartialEq)]
 pub struct PendingPose {
     pub seq: u32,
     pub t_client_ms: f64,
-    pub view: View,
+    pub views: Arc<[FrameView]>,
     pub instance: Instance,
     pub received_at: Instant,
 }
 
+impl PendingPose {
+    fn same_cameras(&self, other: &PendingPose) -> bool {
+        self.views == other.views && self.instance == other.instance
+    }
+}
+
 /// What the core should do now: render (or reuse) and encode this pose.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct FrameJob {
     pub frame: u64,
     pub pose: PendingPose,
@@ -79,6 +89,7 @@ pub struct SessionCounters {
 #[derive(Debug)]
 pub struct Session {
     size: (u32, u32),
+    layout: FrameLayout,
     frame_period: Duration,
     /// Newest validated pose not yet rendered.
     pending: Option<PendingPose>,
@@ -118,6 +129,7 @@ impl Session {
         let fps = fps.clamp(nephele_limits::MIN_FPS, nephele_limits::MAX_FPS);
         Self {
             size: (width, height),
+            layout: FrameLayout::Views { width, height },
             frame_period: Duration::from_secs_f64(1.0 / f64::from(fps)),
             pending: None,
             newest_seq: None,
@@ -135,6 +147,12 @@ impl Session {
         }
     }
 
+    /// Lays the frame out as `layout` (a quilt; the default is the views of each pose).
+    pub fn with_layout(mut self, layout: FrameLayout) -> Self {
+        self.layout = layout;
+        self
+    }
+
     pub fn counters(&self) -> SessionCounters {
         self.counters
     }
@@ -145,8 +163,7 @@ impl Session {
 
     /// A pose message arrived. `Ok(false)`: well-formed but older than one already seen.
     pub fn on_pose(&mut self, bytes: &[u8], now: Instant) -> Result<bool, PoseRejection> {
-        let checked = PoseMessage::decode(bytes).and_then(|m| m.view(self.size).map(|(v, i)| (m, v, i)));
-        let (msg, view, instance) = match checked {
+        let msg = match check_pose(bytes, &self.layout) {
             Ok(x) => x,
             Err(e) => {
                 self.counters.poses_rejected += 1;
@@ -162,11 +179,12 @@ impl Session {
         if self.pending.is_some() {
             self.counters.poses_superseded += 1;
         }
-        let previous = self.pending.or(self.last_started);
-        if previous.is_none_or(|p| (p.view, p.instance) != (view, instance)) {
+        let pose = PendingPose { seq: msg.seq, t_client_ms: msg.t_client_ms, views: msg.views.into(), instance: msg.instance, received_at: now };
+        let previous = self.pending.as_ref().or(self.last_started.as_ref());
+        if previous.is_none_or(|p| !p.same_cameras(&pose)) {
             self.still_since = Some(now);
         }
-        self.pending = Some(PendingPose { seq: msg.seq, t_client_ms: msg.t_client_ms, view, instance, received_at: now });
+        self.pending = Some(pose);
         Ok(true)
     }
 
@@ -224,7 +242,7 @@ impl Session {
             None => return None,
         };
         self.frame_number += 1;
-        let same_pose = self.last_started.is_some_and(|p| (p.view, p.instance) == (pose.view, pose.instance));
+        let same_pose = self.last_started.as_ref().is_some_and(|p| p.same_cameras(&pose));
         // Moving: the controller's scale. Still: keep the last pixels, or, with dynamic
         // resolution and a camera at rest for REFINE_AFTER, render once at full size.
         let at_rest = self.refine_at_rest && self.still_since.is_some_and(|t| now.duration_since(t) >= REFINE_AFTER);
@@ -238,7 +256,7 @@ impl Session {
         // affords, instead of P-frames that keep the motion frames' coding artefacts.
         let refine = same_pose && !same_as_previous;
         let idr = self.idr_wanted || refine;
-        let job = FrameJob { frame: self.frame_number, pose, idr, same_as_previous, render_scale, started_at: now };
+        let job = FrameJob { frame: self.frame_number, pose: pose.clone(), idr, same_as_previous, render_scale, started_at: now };
         if idr {
             self.last_idr_at = Some(now);
         }
@@ -250,7 +268,7 @@ impl Session {
         self.next_slot = Some(epoch + Duration::from_secs_f64((earliest / period).ceil() * period));
         self.last_started = Some(pose);
         self.last_scale = render_scale;
-        self.in_flight.push_back((job, true));
+        self.in_flight.push_back((job.clone(), true));
         Some(job)
     }
 
@@ -278,6 +296,7 @@ impl Session {
             render_scale: job.render_scale,
             batch_views: 0,
             reused: false,
+            views: job.pose.views.len() as u32,
         })
     }
 
@@ -298,15 +317,16 @@ impl Session {
     }
 
     fn repeat_pose(&self, now: Instant) -> Option<PendingPose> {
-        self.last_started.map(|p| PendingPose { received_at: now, ..p })
+        self.last_started.clone().map(|p| PendingPose { received_at: now, ..p })
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::wire::PoseMessage;
     use glam::DVec3;
-    use nephele_renderer::Intrinsics;
+    use nephele_renderer::{Intrinsics, View};
 
     const W: u32 = 64;
     const H: u32 = 48;

@@ -120,7 +120,7 @@ impl Sim {
     }
 
     fn join(&mut self, session: &str, scene: &str, width: u32, height: u32, fps: u32) -> bool {
-        let req = JoinRequest { session: session.into(), scene: scene.into(), mode: Mode::Viewer, width, height, fps };
+        let req = JoinRequest { session: session.into(), scene: scene.into(), mode: Mode::Viewer, width, height, fps, quilt: None };
         self.core.handle_input(self.now, Input::Join(req));
         self.drain();
         if self.rejected.contains_key(session) {
@@ -429,7 +429,7 @@ fn identical_requests_are_rendered_once() {
     assert!(reused * 10 >= frames * 4, "{reused} of {frames} frames reused");
     // A hit is the same frame: both users encode the very same pixels.
     let same = sim.encode_jobs.iter().filter(|j| j.session == "a").any(|ja| {
-        sim.encode_jobs.iter().any(|jb| jb.session == "b" && ja.pose_seq == jb.pose_seq && Arc::ptr_eq(&ja.parts[0], &jb.parts[0]))
+        sim.encode_jobs.iter().any(|jb| jb.session == "b" && ja.pose_seq == jb.pose_seq && Arc::ptr_eq(&ja.views[0].parts[0], &jb.views[0].parts[0]))
     });
     assert!(same);
     assert!(sim.core.history_hits() > 0);
@@ -478,10 +478,16 @@ fn bad_joins_get_words_and_bystanders_keep_their_fps() {
         assert!(!sim.join(s, scene, w, h, fps));
         assert!(sim.rejected[s].starts_with(words), "{s}: {}", sim.rejected[s]);
     }
-    let vr = JoinRequest { session: "vr".into(), scene: "lego".into(), mode: Mode::Vr, width: 160, height: 120, fps: 30 };
-    sim.core.handle_input(sim.now, Input::Join(vr));
+    // Quilts must split into equal tiles, and a layout goes only with mode quilt.
+    let quilt = Some(nephele_signaling::QuiltSpec { cols: 5, rows: 9, cone_deg: 40.0 });
+    let bad_tiles = JoinRequest { session: "q".into(), scene: "lego".into(), mode: Mode::Quilt, width: 160, height: 120, fps: 30, quilt };
+    let stray = JoinRequest { session: "v".into(), scene: "lego".into(), mode: Mode::Viewer, width: 160, height: 120, fps: 30, quilt };
+    for req in [bad_tiles, stray] {
+        sim.core.handle_input(sim.now, Input::Join(req));
+    }
     sim.drain();
-    assert!(sim.rejected["vr"].contains("not served yet"));
+    assert!(sim.rejected["q"].contains("does not split into 5x9 equal tiles"), "{}", sim.rejected["q"]);
+    assert!(sim.rejected["v"].contains("mode quilt"), "{}", sim.rejected["v"]);
     // A client that never sends a pose is paced (nothing to render); one that floods is
     // held to its frame rate.
     assert!(sim.join("silent", "lego", 160, 120, 30));
@@ -503,7 +509,7 @@ fn bad_joins_get_words_and_bystanders_keep_their_fps() {
     assert!(sim.fps_between("good", 1000, 3500) >= 0.95 * 30.0);
     // The silent client's peer never connected in the real world; here it did, but a peer
     // that does not connect at all is ended after the connect timeout.
-    let req = JoinRequest { session: "ghost".into(), scene: "lego".into(), mode: Mode::Viewer, width: 64, height: 48, fps: 10 };
+    let req = JoinRequest { session: "ghost".into(), scene: "lego".into(), mode: Mode::Viewer, width: 64, height: 48, fps: 10, quilt: None };
     sim.core.handle_input(sim.now, Input::Join(req));
     while let o = sim.core.poll_output()
         && !matches!(o, Output::Timeout(_))
@@ -599,8 +605,8 @@ fn a_multi_object_scene_renders_each_object_and_composes_them() {
     let duo_frames = sim.frames_between("a", 500, 2000);
     assert!(duo_frames.len() >= 35, "{} frames", duo_frames.len());
     let jobs: Vec<&EncodeJob> = sim.encode_jobs.iter().filter(|j| j.session == "a").collect();
-    assert!(jobs.iter().all(|j| j.parts.len() == 2 && j.compose_over == Some(Vec3::new(0.1, 0.2, 0.3))));
-    assert!(sim.encode_jobs.iter().filter(|j| j.session == "b").all(|j| j.parts.len() == 1 && j.compose_over.is_none()));
+    assert!(jobs.iter().all(|j| j.views[0].parts.len() == 2 && j.compose_over == Some(Vec3::new(0.1, 0.2, 0.3))));
+    assert!(sim.encode_jobs.iter().filter(|j| j.session == "b").all(|j| j.views[0].parts.len() == 1 && j.compose_over.is_none()));
     let duo_tasks: Vec<&RenderTask> = sim.tasks.iter().filter(|t| t.views.iter().any(|v| v.tags.iter().any(|tag| tag.session == "a"))).collect();
     assert!(duo_tasks.iter().any(|t| t.asset == "lego") && duo_tasks.iter().any(|t| t.asset == "trio"));
     // Objects render over black (composed later) and at their own placement.
@@ -618,4 +624,46 @@ fn a_multi_object_scene_renders_each_object_and_composes_them() {
     assert!(sim.out["a"].errors.iter().any(|e| e.contains("simulated GPU fault")) || sim.out["b"].errors.iter().any(|e| e.contains("simulated GPU fault")));
     sim.run_until(3000);
     assert!(sim.fps_between("a", 2500, 3000) >= 20.0);
+}
+
+#[test]
+fn stereo_and_quilt_frames_are_one_task_each_tiled_into_one_frame() {
+    use crate::wire::{MultiViewPose, PoseView, Viewport};
+    // Batching off: still one task per user frame, holding every view of it.
+    let mut sim = Sim::new(fixed(4, false, Admission::Load), 20e6, 1.0);
+    let vr = JoinRequest { session: "vr".into(), scene: "lego".into(), mode: Mode::Vr, width: 128, height: 48, fps: 25, quilt: None };
+    let quilt = Some(nephele_signaling::QuiltSpec::default());
+    let q = JoinRequest { session: "q".into(), scene: "lego".into(), mode: Mode::Quilt, width: 320, height: 432, fps: 25, quilt };
+    for req in [vr, q] {
+        sim.core.handle_input(sim.now, Input::Join(req));
+    }
+    sim.drain();
+    assert!(sim.rejected.is_empty(), "{:?}", sim.rejected);
+    let k = Intrinsics::from_fov_x(64, 48, 0.8);
+    let centre = View::orbit(DVec3::ZERO, 4.0, 10.0, 20.0, k);
+    let proj = nephele_renderer::views::projection_from_intrinsics(&k, 0.05, 100.0);
+    let eye = |dx: f64, x: u32| PoseView {
+        world_from_camera: (centre.world_from_camera * glam::DMat4::from_translation(DVec3::new(dx, 0.0, 0.0))).as_mat4(),
+        clip_from_camera: proj,
+        viewport: Viewport { x, y: 0, width: 64, height: 48 },
+    };
+    let stereo = MultiViewPose { seq: 1, t_client_ms: 1.0, frame_width: 128, frame_height: 48, views: vec![eye(-0.03, 0), eye(0.03, 64)], world_from_anchor: None };
+    sim.core.handle_input(sim.now, Input::Pose { session: "vr".into(), bytes: stereo.encode().into() });
+    let centre_pose = PoseMessage { seq: 1, t_client_ms: 1.0, world_from_camera: centre.world_from_camera.as_mat4(), intrinsics: k, world_from_anchor: None };
+    sim.core.handle_input(sim.now, Input::Pose { session: "q".into(), bytes: centre_pose.encode().into() });
+    sim.run_until(500);
+    for (session, views) in [("vr", 2usize), ("q", 45)] {
+        let tasks: Vec<&RenderTask> = sim.tasks.iter().filter(|t| t.views.iter().any(|v| v.tags.iter().any(|tag| tag.session == session))).collect();
+        assert_eq!(tasks.len(), 1, "{session}: one task for the frame");
+        assert_eq!(tasks[0].views.len(), views, "{session}");
+        let job = sim.encode_jobs.iter().find(|j| j.session == session).expect("encoded");
+        assert_eq!(job.views.len(), views);
+        assert!(job.views.iter().all(|v| v.parts.len() == 1));
+        let info = &sim.out[session].frames[0].1;
+        assert_eq!(info.views as usize, views);
+    }
+    let vr_job = sim.encode_jobs.iter().find(|j| j.session == "vr").unwrap();
+    assert_eq!(vr_job.views[1].viewport, Viewport { x: 64, y: 0, width: 64, height: 48 });
+    let q_job = sim.encode_jobs.iter().find(|j| j.session == "q").unwrap();
+    assert_eq!(q_job.views[0].viewport, Viewport { x: 0, y: 384, width: 64, height: 48 }, "view 0 is the bottom-left tile");
 }

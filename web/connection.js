@@ -1,202 +1,16 @@
-// nephele.js — shared browser side of Nephele, used by the viewer (index.html) and AR (ar.html).
+// connection.js — one streaming session with the Nephele server, shared by all pages.
 //
-// What lives here:
-//   * OrbitCamera: the camera both pages steer (world up is +z, as in NeRF-synthetic),
-//     and attachOrbitControls(): mouse/touch gestures that move it.
-//   * encodePose(): the 104/168-byte little-endian "NPO1" pose message.
 //   * Connection: signaling over the /signal websocket (join → joined → offer/answer,
-//     trickle ICE both ways), the recvonly H.264 video + unordered "pose" data channel,
-//     a pose every 20 ms, frame-info/latency bookkeeping, getStats polling, and automatic
-//     reconnection with backoff (1, 2, 4, … ≤ 10 s).
+//     trickle ICE both ways), the recvonly H.264 video + unordered "pose" data channel, the
+//     page's pose bytes every 20 ms (from its `pose` callback), frame-info/latency
+//     bookkeeping, getStats polling, automatic reconnection with backoff (1, 2, 4, … ≤ 10 s),
+//     and the window.nephele debug surface (exposeApi).
 //   * ensureCapturePermission(): Chromium only gathers loopback ICE candidates once the page
 //     holds a capture permission, so we ask for a camera once and keep the stream.
-//   * fetchScenes(), readPageOptions(), describeError(): small helpers for both pages.
+//   * fetchScenes(), readPageOptions(), describeError(): small helpers for the pages.
 
-// ───────────────────────────── small vector helpers ─────────────────────────────
-
-const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-const add = (a, b) => [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
-const scale = (a, s) => [a[0] * s, a[1] * s, a[2] * s];
-const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-const norm = (a) => { const l = Math.hypot(a[0], a[1], a[2]) || 1; return [a[0] / l, a[1] / l, a[2] / l]; };
-const clamp = (x, lo, hi) => Math.min(hi, Math.max(lo, x));
-const DEG = Math.PI / 180;
-
-// ───────────────────────────────── orbit camera ─────────────────────────────────
-
-/** A camera on a sphere around `center`, looking at it; +z is world up. */
-export class OrbitCamera {
-  constructor() {
-    this.reset([0, 0, 0], 1);
-  }
-
-  /** Default view of an asset: distance 2.6·radius, azimuth 35°, elevation 25°, fovY 40°. */
-  reset(center, radius) {
-    this.center = [...center];
-    this.radius = radius > 0 ? radius : 1;
-    this.distance = 2.6 * this.radius;
-    this.azimuth = 35 * DEG;   // about +z, from +x
-    this.elevation = 25 * DEG; // towards +z
-    this.fovY = 40 * DEG;
-  }
-
-  eye() {
-    const ce = Math.cos(this.elevation);
-    return add(this.center, scale([ce * Math.cos(this.azimuth), ce * Math.sin(this.azimuth), Math.sin(this.elevation)], this.distance));
-  }
-
-  /** Camera axes in world space: right (+x), up (+y), back (+z; the camera looks down −z). */
-  axes() {
-    const back = norm(sub(this.eye(), this.center));
-    const right = norm(cross([0, 0, 1], back)); // elevation stays within ±89°, so never degenerate
-    const up = cross(back, right);
-    return { right, up, back };
-  }
-
-  /** world_from_camera as 16 floats, column-major (OpenGL camera convention). */
-  worldFromCamera() {
-    const { right, up, back } = this.axes();
-    const e = this.eye();
-    return new Float32Array([...right, 0, ...up, 0, ...back, 0, ...e, 1]);
-  }
-
-  /** Pinhole intrinsics of a centred camera for a width×height viewport. */
-  intrinsics(width, height) {
-    const f = 0.5 * height / Math.tan(this.fovY / 2);
-    return { fx: f, fy: f, cx: width / 2, cy: height / 2 };
-  }
-
-  orbit(dAzimuth, dElevation) {
-    this.azimuth = (this.azimuth + dAzimuth) % (2 * Math.PI);
-    this.elevation = clamp(this.elevation + dElevation, -89 * DEG, 89 * DEG);
-  }
-
-  /** Multiply the distance by `factor`, within [0.05, 50]·radius. */
-  zoom(factor) {
-    this.distance = clamp(this.distance * factor, 0.05 * this.radius, 50 * this.radius);
-  }
-
-  /** Move the look-at point by a fraction of the view height (fractions of the viewport). */
-  pan(fracX, fracY) {
-    const { right, up } = this.axes();
-    const viewHeight = 2 * this.distance * Math.tan(this.fovY / 2);
-    // Content follows the pointer: dragging right moves the camera left.
-    let c = add(this.center, add(scale(right, -fracX * viewHeight), scale(up, fracY * viewHeight)));
-    // Keep the camera well within the server's distance limit.
-    const far = 100 * this.radius;
-    const l = Math.hypot(...c);
-    if (l > far) c = scale(c, far / l);
-    this.center = c;
-  }
-
-  /** World-space ray through viewport pixel (px, py) of a width×height image. */
-  ray(px, py, width, height) {
-    const { fx, fy, cx, cy } = this.intrinsics(width, height);
-    const { right, up, back } = this.axes();
-    const dx = (px - cx) / fx, dy = -(py - cy) / fy; // image y grows downwards, camera +y up
-    const dir = norm(add(add(scale(right, dx), scale(up, dy)), scale(back, -1)));
-    return { origin: this.eye(), dir };
-  }
-}
-
-/**
- * Mouse and touch gestures on `element` that steer `camera`:
- * left-drag orbits, wheel zooms, right-drag or shift-drag pans; one finger orbits, two
- * fingers pinch-zoom and pan. `onTap(clientX, clientY)` fires for a click/tap that did not
- * move. `viewportHeight()` gives the displayed image height in CSS pixels (for panning).
- */
-export function attachOrbitControls(element, camera, { onTap, viewportHeight } = {}) {
-  const pointers = new Map(); // pointerId → {x, y}
-  let mode = null;            // 'orbit' | 'pan' | 'pinch'
-  let tap = null;             // {x, y, t} while a press might still be a tap
-  let pinch = null;           // {dist, mid}
-  const height = () => (viewportHeight ? viewportHeight() : element.clientHeight) || 1;
-  const ORBIT_RAD_PER_PX = 0.008;
-
-  const twoFinger = () => {
-    const [a, b] = [...pointers.values()];
-    return { dist: Math.hypot(a.x - b.x, a.y - b.y) || 1, mid: [(a.x + b.x) / 2, (a.y + b.y) / 2] };
-  };
-
-  element.style.touchAction = 'none';
-  element.addEventListener('contextmenu', (e) => e.preventDefault());
-
-  element.addEventListener('pointerdown', (e) => {
-    element.setPointerCapture?.(e.pointerId);
-    pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
-    if (pointers.size === 1) {
-      mode = e.button === 2 || e.shiftKey ? 'pan' : 'orbit';
-      tap = { x: e.clientX, y: e.clientY, t: performance.now() };
-    } else if (pointers.size === 2) {
-      mode = 'pinch';
-      pinch = twoFinger();
-      tap = null;
-    }
-    e.preventDefault();
-  });
-
-  element.addEventListener('pointermove', (e) => {
-    const p = pointers.get(e.pointerId);
-    if (!p) return;
-    const dx = e.clientX - p.x, dy = e.clientY - p.y;
-    p.x = e.clientX; p.y = e.clientY;
-    if (tap && Math.hypot(e.clientX - tap.x, e.clientY - tap.y) > 6) tap = null;
-    if (mode === 'orbit') {
-      camera.orbit(-dx * ORBIT_RAD_PER_PX, dy * ORBIT_RAD_PER_PX);
-    } else if (mode === 'pan') {
-      camera.pan(dx / height(), dy / height());
-    } else if (mode === 'pinch' && pointers.size >= 2) {
-      const now = twoFinger();
-      camera.zoom(pinch.dist / now.dist);
-      camera.pan((now.mid[0] - pinch.mid[0]) / height(), (now.mid[1] - pinch.mid[1]) / height());
-      pinch = now;
-    }
-  });
-
-  const end = (e) => {
-    if (!pointers.delete(e.pointerId)) return;
-    if (tap && pointers.size === 0 && e.type === 'pointerup' && performance.now() - tap.t < 600) {
-      onTap?.(e.clientX, e.clientY);
-    }
-    tap = null;
-    // Lifting one of two fingers continues as a one-finger orbit from the remaining finger.
-    mode = pointers.size === 1 ? 'orbit' : pointers.size === 0 ? null : mode;
-    if (pointers.size >= 2) pinch = twoFinger();
-  };
-  element.addEventListener('pointerup', end);
-  element.addEventListener('pointercancel', end);
-
-  element.addEventListener('wheel', (e) => {
-    e.preventDefault();
-    const px = e.deltaMode === 1 ? e.deltaY * 16 : e.deltaMode === 2 ? e.deltaY * 400 : e.deltaY;
-    camera.zoom(Math.exp(clamp(px, -200, 200) * 0.0015));
-  }, { passive: false });
-}
-
-// ───────────────────────────────── pose message ─────────────────────────────────
-
-export const POSE_LEN = 104;
-export const POSE_WITH_ANCHOR_LEN = 168;
-
-/**
- * The binary pose message (little-endian):
- * "NPO1" | u32 seq | f64 t_client_ms | f32×16 world_from_camera (column-major) |
- * f32×4 fx fy cx cy | u32×2 width height | optional f32×16 world_from_anchor.
- */
-export function encodePose({ seq, tClientMs, worldFromCamera, intrinsics, width, height, worldFromAnchor }) {
-  const buf = new ArrayBuffer(worldFromAnchor ? POSE_WITH_ANCHOR_LEN : POSE_LEN);
-  const v = new DataView(buf);
-  [0x4e, 0x50, 0x4f, 0x31].forEach((b, i) => v.setUint8(i, b)); // "NPO1"
-  v.setUint32(4, seq, true);
-  v.setFloat64(8, tClientMs, true);
-  for (let i = 0; i < 16; i++) v.setFloat32(16 + 4 * i, worldFromCamera[i], true);
-  const { fx, fy, cx, cy } = intrinsics;
-  [fx, fy, cx, cy].forEach((x, i) => v.setFloat32(80 + 4 * i, x, true));
-  v.setUint32(96, width, true);
-  v.setUint32(100, height, true);
-  if (worldFromAnchor) for (let i = 0; i < 16; i++) v.setFloat32(104 + 4 * i, worldFromAnchor[i], true);
-  return buf;
-}
+import { clamp } from './camera.js';
+import { poseViewCount } from './pose.js';
 
 // ─────────────────────────────────── helpers ────────────────────────────────────
 
@@ -234,15 +48,16 @@ export async function fetchScenes() {
   }
 }
 
-/** Page options from the query string: ?scene=trio&size=1280x720&fps=50&token=… */
-export function readPageOptions() {
+/** Page options from the query string: ?scene=trio&size=1280x720&fps=50&token=…
+ *  (`defaults` gives the page's own default size; 640×480 otherwise). */
+export function readPageOptions({ width = 640, height = 480 } = {}) {
   const q = new URLSearchParams(location.search);
   const m = /^(\d+)x(\d+)$/.exec(q.get('size') || '');
   const even = (n) => Math.max(2, Math.round(n / 2) * 2);
   return {
     scene: q.get('scene') || null,
-    width: m ? even(+m[1]) : 640,
-    height: m ? even(+m[2]) : 480,
+    width: m ? even(+m[1]) : width,
+    height: m ? even(+m[2]) : height,
     fps: clamp(parseInt(q.get('fps'), 10) || 50, 1, 120),
     token: q.get('token') || undefined,
   };
@@ -282,6 +97,7 @@ export function describeError(code, message) {
 const FATAL_CODES = new Set(['unauthorized', 'bad_request', 'rejected', 'unknown_scene', 'bad_message', 'too_large', 'wrong_role', 'not_joined']);
 
 const POSE_PERIOD_MS = 20;
+const POSE_HISTORY = 20; // view counts kept in viewsPerPose
 const STATS_PERIOD_MS = 500;
 const DISCONNECTED_GRACE_MS = 3000;
 const CONNECT_TIMEOUT_MS = 20000;
@@ -292,25 +108,30 @@ const CONNECT_TIMEOUT_MS = 20000;
  * One streaming session, re-established automatically when it breaks.
  *
  * options:
- *   mode            'viewer' | 'ar'
- *   video           <video> element that shows the stream
- *   camera          OrbitCamera whose pose is sent every 20 ms
- *   anchor()        optional: returns the 16-float world_from_anchor to append (AR)
- *   onSession(msg)  the channel's "session" message (center, radius, up, size, …)
- *   onChange()      something shown on the HUD changed (state, banner, stats)
+ *   mode             'viewer' | 'ar' | 'vr' | 'quilt' (sent in `join`)
+ *   video            <video> element that shows the stream
+ *   pose(seq, tMs)   called every 20 ms while the channel is open: the pose message to send
+ *                    (Uint8Array, e.g. from pose.js) for sequence number `seq` and client
+ *                    time `tMs` (performance.now()), or null to send nothing this tick
+ *   camera           optional: the page's OrbitCamera, only shown as window.nephele.camera
+ *   onSession(msg)   the channel's "session" message (center, radius, up, size, …)
+ *   onChange()       something shown on the HUD changed (state, banner, stats)
  *
  * Readable fields: state, banner {text, kind} | null, lastFrame, frameInfos, poseSeq,
+ * lastPoseBytes (Uint8Array), viewsPerPose (view counts of the last 20 poses sent),
  * errors [{code, message, time}], session (last "session" message), hud (see pollStats).
  */
 export class Connection {
-  constructor({ mode, video, camera, anchor, onSession, onChange }) {
-    Object.assign(this, { mode, video, camera, anchorFn: anchor, onSession, onChange });
+  constructor({ mode, video, pose, camera, onSession, onChange }) {
+    Object.assign(this, { mode, video, poseFn: pose, camera, onSession, onChange });
     this.state = 'idle';
     this.banner = null;
     this.errors = [];
     this.lastFrame = null;
     this.frameInfos = 0;
     this.poseSeq = 0;
+    this.lastPoseBytes = null;
+    this.viewsPerPose = [];
     this.session = null;
     this.hud = { fps: 0, latencyMs: null, kbps: 0, width: 0, height: 0, framesDecoded: 0, bytesReceived: 0 };
     this.gen = 0;          // bumps on every (re)connect; stale callbacks compare and bail out
@@ -324,7 +145,7 @@ export class Connection {
     addEventListener('pageshow', (e) => { if (e.persisted && this.params) this.connect(this.params); });
   }
 
-  /** (Re)join with { scene, width, height, fps, token }; resets the backoff. */
+  /** (Re)join with { scene, width, height, fps, token?, quilt? }; resets the backoff. */
   connect(params) {
     this.params = { ...params };
     this.backoffS = 1;
@@ -417,9 +238,10 @@ export class Connection {
     ws.onopen = () => {
       if (stale()) return;
       opened = true;
-      const { scene, width, height, fps, token } = this.params;
+      const { scene, width, height, fps, token, quilt } = this.params;
       const join = { type: 'join', scene, mode: this.mode, width, height, fps };
       if (token) join.token = token;
+      if (quilt) join.quilt = quilt;
       this.send(join);
       this.setState('joining');
     };
@@ -536,18 +358,21 @@ export class Connection {
     const dc = this.dc;
     if (!dc || dc.readyState !== 'open') return;
     if (dc.bufferedAmount > 64 * 1024) return; // congested: a fresher pose follows in 20 ms
-    const { width, height } = this.params;
-    const anchor = this.anchorFn?.();
-    this.poseSeq += 1;
-    dc.send(encodePose({
-      seq: this.poseSeq,
-      tClientMs: performance.now(),
-      worldFromCamera: this.camera.worldFromCamera(),
-      intrinsics: this.camera.intrinsics(width, height),
-      width,
-      height,
-      worldFromAnchor: anchor || undefined,
-    }));
+    const seq = this.poseSeq + 1;
+    let bytes;
+    try {
+      bytes = this.poseFn?.(seq, performance.now());
+    } catch (err) {
+      console.warn('nephele: pose callback failed', err);
+      return;
+    }
+    if (!bytes) return; // the page has no pose this tick
+    if (bytes instanceof ArrayBuffer) bytes = new Uint8Array(bytes);
+    this.poseSeq = seq;
+    dc.send(bytes);
+    this.lastPoseBytes = bytes;
+    this.viewsPerPose.push(poseViewCount(bytes));
+    if (this.viewsPerPose.length > POSE_HISTORY) this.viewsPerPose.shift();
   }
 
   onChannelMessage(data) {
@@ -630,13 +455,15 @@ export class Connection {
     this.onChange?.();
   }
 
-  /** The test/debug surface both pages put on window.nephele. */
+  /** The test/debug surface every page puts on window.nephele (`extra`: the page's own). */
   exposeApi(extra = {}) {
     const conn = this;
     const api = {
       get state() { return conn.state; },
       get lastFrame() { return conn.lastFrame; },
       get poseSeq() { return conn.poseSeq; },
+      get lastPoseBytes() { return conn.lastPoseBytes; },
+      get viewsPerPose() { return [...conn.viewsPerPose]; },
       get session() { return conn.session; },
       get banner() { return conn.banner ? conn.banner.text : null; },
       get hud() { return { ...conn.hud }; },
@@ -653,42 +480,3 @@ export class Connection {
   }
 }
 
-/** HUD text shared by both pages. */
-export function hudLines(conn) {
-  const h = conn.hud;
-  const f = conn.lastFrame;
-  return [
-    ['state', conn.state],
-    ['fps', h.fps.toFixed(1)],
-    ['latency', h.latencyMs == null ? '–' : `${h.latencyMs.toFixed(0)} ms`],
-    ['bitrate', `${h.kbps.toFixed(0)} kbit/s`],
-    ['resolution', h.width ? `${h.width}×${h.height}` : '–'],
-    // The server renders at this fraction of the stream size when moving (dynamic
-    // resolution) and refines to full size when the camera rests.
-    ['render', f ? `${Math.round((f.render_scale ?? 1) * 100)}% · ${f.render_ms.toFixed(0)} ms` : '–'],
-    // Several users' views rendered in one task, or a frame reused (camera at rest, or the
-    // same view as another user's).
-    ['batch', f ? (f.reused ? 'reused' : `${f.batch_views ?? 1} view${(f.batch_views ?? 1) === 1 ? '' : 's'}`) : '–'],
-    ['encode', f ? `${f.encode_ms.toFixed(1)} ms` : '–'],
-    ['frame', f ? String(f.frame) : '–'],
-  ];
-}
-
-/** Shows the connection state, the banner and the HUD in the page's `#state`, `#banner`
- *  and `#hud` elements (both pages use the same ids). */
-export function renderStatus(conn) {
-  const $ = (id) => document.getElementById(id);
-  $('state').textContent = conn.state;
-  $('state').dataset.state = conn.state;
-  const banner = $('banner');
-  banner.hidden = !conn.banner;
-  if (conn.banner) {
-    banner.textContent = conn.banner.text;
-    banner.dataset.kind = conn.banner.kind;
-  }
-  $('hud').replaceChildren(...hudLines(conn).flatMap(([k, v]) => {
-    const dt = document.createElement('dt'); dt.textContent = k;
-    const dd = document.createElement('dd'); dd.textContent = v;
-    return [dt, dd];
-  }));
-}

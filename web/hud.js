@@ -1,0 +1,45 @@
+// hud.js — the status shown on every page: the HUD lines (state, fps, latency, bitrate,
+// resolution, render scale and time, batch, encode time, frame number, plus any lines a page
+// adds) and renderStatus(), which puts them, the state pill and the banner into the page's
+// `#hud`, `#state` and `#banner` elements.
+
+/** HUD lines [label, text] of a Connection; `extra` lines (a page's own) go at the end. */
+export function hudLines(conn, extra = []) {
+  const h = conn.hud;
+  const f = conn.lastFrame;
+  return [
+    ['state', conn.state],
+    ['fps', h.fps.toFixed(1)],
+    ['latency', h.latencyMs == null ? '–' : `${h.latencyMs.toFixed(0)} ms`],
+    ['bitrate', `${h.kbps.toFixed(0)} kbit/s`],
+    ['resolution', h.width ? `${h.width}×${h.height}` : '–'],
+    // The server renders at this fraction of the stream size when moving (dynamic
+    // resolution) and refines to full size when the camera rests.
+    ['render', f ? `${Math.round((f.render_scale ?? 1) * 100)}% · ${Number(f.render_ms ?? 0).toFixed(0)} ms` : '–'],
+    // Several users' views rendered in one task, or a frame reused (camera at rest, or the
+    // same view as another user's).
+    ['batch', f ? (f.reused ? 'reused' : `${f.batch_views ?? 1} view${(f.batch_views ?? 1) === 1 ? '' : 's'}`) : '–'],
+    ['encode', f ? `${Number(f.encode_ms ?? 0).toFixed(1)} ms` : '–'],
+    ['frame', f ? String(f.frame) : '–'],
+    ...extra,
+  ];
+}
+
+/** Shows the connection state, the banner and the HUD in the page's `#state`, `#banner`
+ *  and `#hud` elements (all pages use the same ids); `extra` HUD lines are appended. */
+export function renderStatus(conn, extra = []) {
+  const $ = (id) => document.getElementById(id);
+  $('state').textContent = conn.state;
+  $('state').dataset.state = conn.state;
+  const banner = $('banner');
+  banner.hidden = !conn.banner;
+  if (conn.banner) {
+    banner.textContent = conn.banner.text;
+    banner.dataset.kind = conn.banner.kind;
+  }
+  $('hud').replaceChildren(...hudLines(conn, extra).flatMap(([k, v]) => {
+    const dt = document.createElement('dt'); dt.textContent = k;
+    const dd = document.createElement('dd'); dd.textContent = v;
+    return [dt, dd];
+  }));
+}
