@@ -34,6 +34,7 @@ fn opts(url: String, scene: &str, size: (u32, u32), fps: u32) -> ReplayOptions {
         save_dir: None,
         drain: Duration::from_secs(2),
         start_at: None,
+        stereo_baseline: None,
     }
 }
 

@@ -53,7 +53,7 @@ fn short_trace(name: &str, poses: usize) -> Trace {
 async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
     let (addr, catalog) = start_server(4).await;
     let trace = short_trace("orbit", 100);
-    let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None };
+    let opts = ReplayOptions { client: client_opts(addr, Mode::Viewer, 320, 240), anchor: None, quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None, stereo_baseline: None };
     let reference = |view, instance, background| catalog.render_scene("trio", view, instance, background);
     let report = replay(&trace, &opts, Some(&reference)).await.unwrap();
     println!("{report}");
@@ -73,7 +73,7 @@ async fn ar_keyed_alpha_matches_the_renderer_alpha() {
     let trace = short_trace("zoom", 60);
     // The object placed on a "table": moved and scaled, as the AR page's plane anchor does.
     let anchor = Mat4::from_scale_rotation_translation(glam::Vec3::splat(0.8), glam::Quat::IDENTITY, glam::Vec3::new(0.2, -0.1, 0.0));
-    let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None };
+    let opts = ReplayOptions { client: client_opts(addr, Mode::Ar, 320, 240), anchor: Some(anchor), quality_every: 2, save_dir: None, drain: Duration::from_secs(2), start_at: None, stereo_baseline: None };
     let reference = |view, instance, background| catalog.render_scene("trio", view, instance, background);
     let report = replay(&trace, &opts, Some(&reference)).await.unwrap();
     println!("{report}");
@@ -300,7 +300,7 @@ async fn users_with_different_fps_each_get_their_own_poses() {
         let mut client = client_opts(addr, Mode::Viewer, 96, 72);
         client.fps = fps;
         client.keep_pixels = false;
-        let opts = ReplayOptions { client, anchor: None, quality_every: 0, save_dir: None, drain: Duration::from_secs(1), start_at: None };
+        let opts = ReplayOptions { client, anchor: None, quality_every: 0, save_dir: None, drain: Duration::from_secs(1), start_at: None, stereo_baseline: None };
         runs.push((fps, tokio::spawn(async move { replay(&trace, &opts, None).await })));
     }
     // While they stream, the metrics page lists every user with its target.
@@ -347,7 +347,7 @@ async fn a_composed_scene_streams_what_a_direct_composed_render_shows() {
     let mut client = client_opts(server.addr, Mode::Viewer, 640, 480);
     client.scene = "pair".into();
     client.fps = 20;
-    let opts = ReplayOptions { client, anchor: None, quality_every: 1, save_dir: None, drain: Duration::from_secs(2), start_at: None };
+    let opts = ReplayOptions { client, anchor: None, quality_every: 1, save_dir: None, drain: Duration::from_secs(2), start_at: None, stereo_baseline: None };
     // The page's background is the scene's (viewer mode); the reference uses it too.
     let reference = |view, instance, _bg| catalog.render_scene("pair", view, instance, glam::Vec3::new(0.9, 0.95, 1.0));
     let report = replay(&trace, &opts, Some(&reference)).await.unwrap();

@@ -117,6 +117,10 @@ pub enum BenchCommand {
     /// in-process worker: frame time, the NATS hop, NEPHELE Eq. 9 for a composed scene, and
     /// the failover gap when a worker is killed.
     Farm(super::farm::FarmArgs),
+    /// Looking Glass quilts (NEPHELE §7): a 45-view quilt's frame time for i-NOLF (one task,
+    /// and 45 separate renders) and its i-NGP teacher, per backend in one run; and streaming
+    /// stereo (both eyes in one task) against mono at the same total pixels.
+    Quilt(super::quilt::QuiltBenchArgs),
 }
 
 /// Runs one `nephele bench` subcommand.
@@ -172,6 +176,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
         }
         BenchCommand::Users(args) => super::users::run(args),
         BenchCommand::Farm(args) => super::farm::run(args),
+        BenchCommand::Quilt(args) => super::quilt::run(args),
     }
 }
 
@@ -207,7 +212,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
                     anchor: None,
                     quality_every: 10,
                     save_dir: None,
-                    drain: std::time::Duration::from_secs(2), start_at: None
+                    drain: std::time::Duration::from_secs(2), start_at: None, stereo_baseline: None
                 };
                 let reference = |view, instance, background| catalog.render_scene("bench", view, instance, background);
                 replay::replay(&trace, &opts, Some(&reference)).await

@@ -184,7 +184,7 @@ async fn stream(scenes: &[String], scene: &str, nats: Option<NatsSettings>, trac
         quality_every: 0,
         save_dir: None,
         drain: Duration::from_secs(2),
-        start_at: None,
+        start_at: None, stereo_baseline: None,
     };
     replay(trace, &opts, None).await
 }

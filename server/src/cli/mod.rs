@@ -5,6 +5,7 @@ pub mod bench;
 pub mod data;
 pub mod farm;
 pub mod plot;
+pub mod quilt;
 pub mod render;
 pub mod replay;
 pub mod serve;

@@ -83,7 +83,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
         anchor: None,
         quality_every: args.quality_every,
         save_dir: args.save,
-        drain: std::time::Duration::from_secs(1), start_at: None
+        drain: std::time::Duration::from_secs(1), start_at: None, stereo_baseline: None
     };
     let rt = tokio::runtime::Runtime::new()?;
     let reference = reference.as_deref().map(|r| replay::asset_reference(r, settings));

@@ -244,7 +244,7 @@ async fn session_run(
             quality_every: 0,
             save_dir: None,
             drain: Duration::from_secs(1),
-            start_at,
+            start_at, stereo_baseline: None,
         };
         tasks.push(tokio::spawn(async move { replay(&t, &opts, None).await }));
     }
@@ -292,7 +292,7 @@ async fn overload_run(
             anchor: None,
             quality_every: 0,
             save_dir: None,
-            drain: Duration::from_secs(1), start_at: None
+            drain: Duration::from_secs(1), start_at: None, stereo_baseline: None
         };
         tasks.push(tokio::spawn(async move { replay(&t, &opts, None).await }));
         tokio::time::sleep(Duration::from_secs(1)).await;

@@ -15,12 +15,12 @@ use std::{
 
 use anyhow::{Context, Result, bail};
 use glam::{DVec3, Mat4, Vec3};
-use nephele_renderer::{Frame, Instance, Intrinsics, PreparedAsset, RenderSettings, View, ViewRequest};
+use nephele_renderer::{Frame, Instance, Intrinsics, PreparedAsset, RenderSettings, View, ViewRequest, views::projection_from_intrinsics};
 use nephele_signaling::Mode;
 use serde::{Deserialize, Serialize};
 
 use super::{ClientOptions, ReceivedFrame, StreamClient};
-use crate::wire::{FrameInfo, PoseMessage, ToViewer, media::background_of};
+use crate::wire::{FrameInfo, MultiViewPose, PoseMessage, PoseView, ToViewer, Viewport, media::background_of};
 
 /// A recorded camera path.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -107,6 +107,10 @@ pub struct ReplayOptions {
     pub drain: Duration,
     /// Send the first pose at this time (several clients in lockstep), not at once.
     pub start_at: Option<Instant>,
+    /// Stereo (mode `vr`): send both eyes as an `NPO2` message, side by side, each half the
+    /// frame's width, eyes this far apart (scene units) along the trace camera's x axis.
+    /// Frames are then not compared with a direct render (`quality_every` is ignored).
+    pub stereo_baseline: Option<f32>,
 }
 
 /// Percentiles of a sample, ms.
@@ -278,7 +282,10 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
                     world_from_anchor: opts.anchor,
                 };
                 sent_at.insert(u64::from(seq), (Instant::now(), pose));
-                client.send_pose(&pose).await?;
+                match opts.stereo_baseline {
+                    None => client.send_pose(&pose).await?,
+                    Some(baseline) => client.send_bytes(stereo_pose(&pose, w, h, baseline).encode().into()).await?,
+                }
                 next += 1;
                 if next == trace.poses.len() {
                     drain_until = Some(tokio::time::Instant::now() + opts.drain);
@@ -340,7 +347,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
 
     let rendered: Vec<&FrameInfo> = infos.iter().map(|(i, _)| i).filter(|i| !i.reused).collect();
     let mut quality = Vec::new();
-    if let (Some(reference), true) = (reference, opts.quality_every > 0) {
+    if let (Some(reference), true) = (reference, opts.quality_every > 0 && opts.stereo_baseline.is_none()) {
         let background = background_of(opts.client.mode);
         for f in frames.iter().step_by(opts.quality_every) {
             let Some((_, sent)) = f.pose_seq.and_then(|s| sent_at.get(&s)) else { continue };
@@ -398,6 +405,23 @@ fn mean(values: impl Iterator<Item = f64>) -> f64 {
 }
 
 /// PSNR over the RGB channels of two RGBA8 images of the same size, dB (∞ if identical).
+/// Both eyes of `centre` (its intrinsics are replaced by the trace's at the eye size), side
+/// by side in a `width`×`height` frame, `baseline` apart.
+fn stereo_pose(centre: &PoseMessage, width: u32, height: u32, baseline: f32) -> MultiViewPose {
+    let eye_w = width / 2;
+    let k = Intrinsics::from_fov_x(eye_w, height, 2.0 * (0.5 * centre.intrinsics.width as f32 / centre.intrinsics.fx).atan());
+    let clip_from_camera = projection_from_intrinsics(&k, 0.01, 1000.0);
+    let views = [(-0.5f32, 0), (0.5, eye_w)]
+        .into_iter()
+        .map(|(side, x)| PoseView {
+            world_from_camera: centre.world_from_camera * Mat4::from_translation(glam::Vec3::new(side * baseline, 0.0, 0.0)),
+            clip_from_camera,
+            viewport: Viewport { x, y: 0, width: eye_w, height },
+        })
+        .collect();
+    MultiViewPose { seq: centre.seq, t_client_ms: centre.t_client_ms, frame_width: width, frame_height: height, views, world_from_anchor: centre.world_from_anchor }
+}
+
 pub fn psnr_rgb(a: &[u8], b: &[u8]) -> f64 {
     assert_eq!(a.len(), b.len(), "images differ in size");
     let (mut se, mut n) = (0.0f64, 0usize);

@@ -110,7 +110,7 @@ struct Pending {
     first_sent: Instant,
     last_heard: Instant,
     failed: HashSet<String>,
-    sizes: Option<Vec<(u32, u32)>>,
+    sizes: Option<Vec<crate::worker::protocol::SentView>>,
     render_ms: f64,
     chunks: Vec<Option<Bytes>>,
 }
@@ -328,7 +328,7 @@ impl FarmLoop {
         if i == 0 {
             let sizes = parse_views(&header(VIEWS).ok_or("the first chunk has no Nephele-Views")?, MAX_RESULT_VIEWS).map_err(|e| e.to_string())?;
             let expected: Vec<(u32, u32)> = p.task.views.iter().map(|v| (v.view.intrinsics.width, v.view.intrinsics.height)).collect();
-            if sizes != expected {
+            if sizes.iter().map(|v| (v.width, v.height)).ne(expected.iter().copied()) {
                 return Err("the result's view sizes are not the task's".into());
             }
             p.sizes = Some(sizes);

@@ -13,10 +13,13 @@
 //! - **Replies**, all on that reply subject, told apart by the `Nephele-Kind` header:
 //!   `accepted` at once (with `Nephele-Worker`), `working` every [`KEEPALIVE`] while
 //!   rendering, then the result as `chunk` messages `Nephele-Chunk: i/n` (the first carries
-//!   `Nephele-Views`, the JSON list of view sizes, and `Nephele-Render-Ms`), or one `error`
-//!   message with the reason as payload. The result payload is, per view in order, RGBA8
-//!   (`w·h·4` bytes) then, if the task `needs_depth` (its views will be composed by depth),
-//!   depth (`w·h` little-endian f32), cut into chunks of at most
+//!   `Nephele-Views`, per view `[w, h, x, y, rw, rh]`: its size and the rectangle sent, and
+//!   `Nephele-Render-Ms`), or one `error` message with the reason as payload. The result
+//!   payload is, per view in order, the rectangle's RGBA8 (`rw·rh·4` bytes) then, if the
+//!   task `needs_depth` (its views will be composed by depth), its depth (`rw·rh`
+//!   little-endian f32). Views for composing were rendered over black, so only the
+//!   rectangle around what the object covers is sent (outside it: RGBA 0, depth ∞, exactly);
+//!   other views are sent whole. All of it is cut into chunks of at most
 //!   [`CHUNK_BYTES`]: half of NATS's default 1 MiB payload limit, leaving room for headers
 //!   and for servers configured lower.
 
@@ -154,16 +157,74 @@ pub enum ReplyError {
     Chunk { index: usize, count: usize },
 }
 
-/// The result payload of rendered views (depth too if `with_depth`), in chunks of at most
-/// [`CHUNK_BYTES`].
-pub fn result_chunks(frames: &[Arc<Frame>], with_depth: bool) -> (Vec<(u32, u32)>, Vec<Bytes>) {
-    let sizes = frames.iter().map(|f| (f.width, f.height)).collect();
-    let mut all = Vec::with_capacity(frames.iter().map(|f| f.rgba.len() + if with_depth { 4 * f.depth.len() } else { 0 }).sum());
-    for f in frames {
-        all.extend_from_slice(&f.rgba);
+/// A view of a result: its size, and the rectangle `[x, y, w, h]` of it that was sent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(from = "[u32; 6]", into = "[u32; 6]")]
+pub struct SentView {
+    pub width: u32,
+    pub height: u32,
+    pub rect: [u32; 4],
+}
+
+impl From<[u32; 6]> for SentView {
+    fn from(v: [u32; 6]) -> Self {
+        Self { width: v[0], height: v[1], rect: [v[2], v[3], v[4], v[5]] }
+    }
+}
+
+impl From<SentView> for [u32; 6] {
+    fn from(v: SentView) -> Self {
+        [v.width, v.height, v.rect[0], v.rect[1], v.rect[2], v.rect[3]]
+    }
+}
+
+impl SentView {
+    fn pixels(&self) -> usize {
+        self.rect[2] as usize * self.rect[3] as usize
+    }
+
+    /// The rectangle lies inside the view.
+    fn valid(&self) -> bool {
+        let [x, y, w, h] = self.rect.map(u64::from);
+        nephele_limits::render_size_ok(self.width, self.height) && x + w <= u64::from(self.width) && y + h <= u64::from(self.height)
+    }
+}
+
+/// The smallest rectangle holding every pixel of `f` that is not empty (RGBA 0, depth ∞);
+/// `[0, 0, 0, 0]` when the object is not in view.
+fn covered_rect(f: &Frame) -> [u32; 4] {
+    let (w, h) = (f.width as usize, f.height as usize);
+    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            if f.rgba[4 * i..4 * i + 4] != [0, 0, 0, 0] || f.depth.get(i).is_some_and(|d| d.is_finite()) {
+                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1));
+            }
+        }
+    }
+    if x0 >= x1 { [0, 0, 0, 0] } else { [x0 as u32, y0 as u32, (x1 - x0) as u32, (y1 - y0) as u32] }
+}
+
+/// The result payload of rendered views (depth too if `with_depth`, and then only the
+/// covered rectangle of each), in chunks of at most [`CHUNK_BYTES`].
+pub fn result_chunks(frames: &[Arc<Frame>], with_depth: bool) -> (Vec<SentView>, Vec<Bytes>) {
+    let views: Vec<SentView> = frames
+        .iter()
+        .map(|f| SentView { width: f.width, height: f.height, rect: if with_depth { covered_rect(f) } else { [0, 0, f.width, f.height] } })
+        .collect();
+    let mut all = Vec::with_capacity(views.iter().map(|v| v.pixels() * if with_depth { 8 } else { 4 }).sum());
+    for (f, v) in frames.iter().zip(&views) {
+        let [x, y, w, h] = v.rect.map(|c| c as usize);
+        let stride = f.width as usize;
+        for row in y..y + h {
+            all.extend_from_slice(&f.rgba[4 * (row * stride + x)..4 * (row * stride + x + w)]);
+        }
         if with_depth {
-            for d in &f.depth {
-                all.extend_from_slice(&d.to_le_bytes());
+            for row in y..y + h {
+                for d in &f.depth[row * stride + x..row * stride + x + w] {
+                    all.extend_from_slice(&d.to_le_bytes());
+                }
             }
         }
     }
@@ -173,42 +234,53 @@ pub fn result_chunks(frames: &[Arc<Frame>], with_depth: bool) -> (Vec<(u32, u32)
     } else {
         (0..all.len()).step_by(CHUNK_BYTES).map(|at| all.slice(at..(at + CHUNK_BYTES).min(all.len()))).collect()
     };
-    (sizes, chunks)
+    (views, chunks)
 }
 
-/// Frames back from the joined chunks and the `Nephele-Views` sizes. Without depth, the
+/// Frames back from the joined chunks and the `Nephele-Views` layout. Without depth, the
 /// frames' depth is empty (only a composed scene reads it).
-pub fn frames_from(sizes: &[(u32, u32)], payload: &[u8], with_depth: bool) -> Result<Vec<Arc<Frame>>, ReplyError> {
+pub fn frames_from(views: &[SentView], payload: &[u8], with_depth: bool) -> Result<Vec<Arc<Frame>>, ReplyError> {
     let per_pixel = if with_depth { 8 } else { 4 };
-    let want: usize = sizes.iter().map(|(w, h)| *w as usize * *h as usize * per_pixel).sum();
+    let want: usize = views.iter().map(|v| v.pixels() * per_pixel).sum();
     if payload.len() != want {
         return Err(ReplyError::Size { got: payload.len(), want });
     }
     let mut at = 0;
-    let mut frames = Vec::with_capacity(sizes.len());
-    for &(w, h) in sizes {
-        let n = w as usize * h as usize;
-        let rgba = payload[at..at + 4 * n].to_vec();
-        at += 4 * n;
+    let mut frames = Vec::with_capacity(views.len());
+    for v in views {
+        let n = v.width as usize * v.height as usize;
+        let [x, y, w, h] = v.rect.map(|c| c as usize);
+        let stride = v.width as usize;
+        let mut rgba = vec![0u8; 4 * n];
+        for row in y..y + h {
+            rgba[4 * (row * stride + x)..4 * (row * stride + x + w)].copy_from_slice(&payload[at..at + 4 * w]);
+            at += 4 * w;
+        }
         let depth = if with_depth {
-            let d = payload[at..at + 4 * n].chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-            at += 4 * n;
+            let mut d = vec![f32::INFINITY; n];
+            for row in y..y + h {
+                for (i, b) in payload[at..at + 4 * w].chunks_exact(4).enumerate() {
+                    d[row * stride + x + i] = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                }
+                at += 4 * w;
+            }
             d
         } else {
             Vec::new()
         };
-        frames.push(Arc::new(Frame { width: w, height: h, rgba, depth }));
+        frames.push(Arc::new(Frame { width: v.width, height: v.height, rgba, depth }));
     }
     Ok(frames)
 }
 
-/// Parses `Nephele-Views`: at most `max_views` sizes within the render limits.
-pub fn parse_views(text: &str, max_views: usize) -> Result<Vec<(u32, u32)>, ReplyError> {
-    let sizes: Vec<(u32, u32)> = serde_json::from_str(text).map_err(|_| ReplyError::Malformed(VIEWS))?;
-    if sizes.len() > max_views || !sizes.iter().all(|&(w, h)| nephele_limits::render_size_ok(w, h)) {
+/// Parses `Nephele-Views`: at most `max_views` views within the render limits, each
+/// rectangle inside its view.
+pub fn parse_views(text: &str, max_views: usize) -> Result<Vec<SentView>, ReplyError> {
+    let views: Vec<SentView> = serde_json::from_str(text).map_err(|_| ReplyError::Malformed(VIEWS))?;
+    if views.len() > max_views || !views.iter().all(SentView::valid) {
         return Err(ReplyError::Malformed(VIEWS));
     }
-    Ok(sizes)
+    Ok(views)
 }
 
 /// `i/n` of `Nephele-Chunk`.
@@ -241,6 +313,39 @@ mod tests {
         })
     }
 
+    /// An object covering a block of an otherwise empty view (rendered over black).
+    fn object(w: u32, h: u32, block: [u32; 4]) -> Arc<Frame> {
+        let n = (w * h) as usize;
+        let mut f = Frame { width: w, height: h, rgba: vec![0; 4 * n], depth: vec![f32::INFINITY; n] };
+        for y in block[1]..block[1] + block[3] {
+            for x in block[0]..block[0] + block[2] {
+                let i = (y * w + x) as usize;
+                f.rgba[4 * i..4 * i + 4].copy_from_slice(&[x as u8, y as u8, 7, 200]);
+                f.depth[i] = 1.0 + x as f32;
+            }
+        }
+        Arc::new(f)
+    }
+
+    #[test]
+    fn composed_views_send_only_what_the_object_covers_and_come_back_exact() {
+        let frames = vec![object(640, 480, [100, 50, 200, 120]), object(64, 48, [0, 0, 0, 0]), object(64, 48, [63, 47, 1, 1])];
+        let (views, chunks) = result_chunks(&frames, true);
+        assert_eq!(views[0].rect, [100, 50, 200, 120]);
+        assert_eq!(views[1].rect, [0, 0, 0, 0]);
+        assert_eq!(views[2].rect, [63, 47, 1, 1]);
+        let joined: Vec<u8> = chunks.iter().flat_map(|c| c.iter().copied()).collect();
+        assert_eq!(joined.len(), 8 * (200 * 120 + 1));
+        let text = serde_json::to_string(&views).unwrap();
+        assert_eq!(text, "[[640,480,100,50,200,120],[64,48,0,0,0,0],[64,48,63,47,1,1]]");
+        let back = frames_from(&parse_views(&text, 8).unwrap(), &joined, true).unwrap();
+        assert_eq!(back, frames);
+        // A rectangle outside its view is refused.
+        for bad in ["[[64,48,60,0,5,1]]", "[[64,48,0,0,64,49]]", "[[64,48,1,2]]", "[[0,48,0,0,0,0]]"] {
+            assert!(parse_views(bad, 8).is_err(), "{bad}");
+        }
+    }
+
     #[test]
     fn results_round_trip_through_chunks() {
         let frames = vec![frame(640, 480, 3), frame(1, 1, 5), frame(97, 31, 7)];
@@ -266,8 +371,9 @@ mod tests {
         for bad in ["3/3", "x/3", "1", "0/0", "-1/2", "1/99999999"] {
             assert!(parse_chunk(bad).is_err(), "{bad}");
         }
-        assert_eq!(parse_views("[[64,48],[1,1]]", 8), Ok(vec![(64, 48), (1, 1)]));
-        for bad in ["[[0,1]]", "[[100000,1]]", "nonsense", "[[1,1],[1,1]]"] {
+        let whole = |w, h| SentView { width: w, height: h, rect: [0, 0, w, h] };
+        assert_eq!(parse_views("[[64,48,0,0,64,48],[1,1,0,0,1,1]]", 8), Ok(vec![whole(64, 48), whole(1, 1)]));
+        for bad in ["[[0,1,0,0,0,0]]", "[[100000,1,0,0,1,1]]", "nonsense", "[[1,1,0,0,1,1],[1,1,0,0,1,1]]", "[[64,48]]"] {
             assert!(parse_views(bad, 1).is_err(), "{bad}");
         }
         let a = WorkerAnnouncement {
