@@ -358,3 +358,38 @@ async fn a_composed_scene_streams_what_a_direct_composed_render_shows() {
     let min = report.min_psnr().unwrap();
     assert!(min >= 35.0, "composed stream vs direct composed render: min PSNR {min:.2} dB: {:?}", report.quality);
 }
+
+/// An empty message on the pose channel ends that channel in webrtc-rs. It used to leave a
+/// silent session holding its slot; now the session ends in words and the slot is free for
+/// the next client (capacity 1).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_empty_pose_message_ends_the_session_and_frees_its_slot() {
+    let (addr, _) = start_server(1).await;
+    let mut a = StreamClient::connect(&client_opts(addr, Mode::Viewer, 160, 120)).await.unwrap();
+    a.send_bytes(Bytes::new()).await.unwrap();
+    let ended = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            match a.signaling.recv().await {
+                Some(nephele_signaling::ToClient::Ended { reason }) => break reason,
+                Some(_) => continue,
+                None => panic!("signaling closed without `ended`"),
+            }
+        }
+    })
+    .await
+    .expect("the session ended");
+    assert!(ended.contains("pose channel closed"), "{ended}");
+    // The slot is free: another client streams.
+    let mut b = StreamClient::connect(&client_opts(addr, Mode::Viewer, 160, 120)).await.unwrap();
+    let b_frames = watch(&mut b).frames;
+    let b = Arc::new(b);
+    let stop = Arc::new(AtomicBool::new(false));
+    let posing = keep_posing(Arc::clone(&b), 160, 120, Arc::clone(&stop));
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    while b_frames.load(Ordering::Relaxed) < 5 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    stop.store(true, Ordering::Relaxed);
+    posing.await.unwrap();
+    assert!(b_frames.load(Ordering::Relaxed) >= 5, "the next client did not stream");
+}

@@ -74,6 +74,7 @@ const ERROR_WORDS = {
   too_large: 'A message was too large for the server',
   wrong_role: 'The server got a message this page may not send',
   not_joined: 'The server got a session message before the session existed',
+  rate_limited: 'This page sent messages too fast and was disconnected',
   bad_pose: 'The server refused a camera pose',
   frame_failed: 'The server could not render a frame',
   ended: 'The render server ended the session',

@@ -42,6 +42,12 @@ pub struct HubConfig {
     pub heartbeat_timeout: Duration,
     /// Longest accepted text message in bytes; longer ones get `error too_large`.
     pub max_message_bytes: usize,
+    /// Messages per second a client connection may send on average (a session needs a
+    /// join, an offer, a dozen ICE candidates and a leave)…
+    pub client_messages_per_s: f64,
+    /// …and in one burst. Beyond that the client gets `rate_limited` and is disconnected,
+    /// before its relayed messages can fill its master's queue.
+    pub client_message_burst: f64,
 }
 
 impl Default for HubConfig {
@@ -50,6 +56,8 @@ impl Default for HubConfig {
             token: None,
             heartbeat_timeout: Duration::from_secs(15),
             max_message_bytes: nephele_limits::MAX_SIGNAL_MESSAGE_BYTES,
+            client_messages_per_s: nephele_limits::CLIENT_SIGNAL_MESSAGES_PER_S,
+            client_message_burst: nephele_limits::CLIENT_SIGNAL_MESSAGE_BURST,
         }
     }
 }
@@ -117,6 +125,9 @@ pub enum SignalError {
     /// Session message before a successful `join`/`register`.
     #[error("`{0}` needs a session: send `join` (clients) or `register` (masters) first")]
     NotJoined(&'static str),
+    /// A client sent messages faster than its allowance; the connection is closed.
+    #[error("more than {burst} messages at once or {per_s} per second on average; disconnected")]
+    RateLimited { burst: f64, per_s: f64 },
 }
 
 impl SignalError {
@@ -131,6 +142,7 @@ impl SignalError {
             Self::BadRequest(_) => ErrorCode::BadRequest,
             Self::WrongRole { .. } => ErrorCode::WrongRole,
             Self::NotJoined(_) => ErrorCode::NotJoined,
+            Self::RateLimited { .. } => ErrorCode::RateLimited,
         }
     }
 }
@@ -199,6 +211,8 @@ struct Session {
 pub struct Hub {
     cfg: HubConfig,
     peers: BTreeMap<ConnId, Peer>,
+    /// Message allowance of each connection that is not a master: (tokens, last refill).
+    allowance: BTreeMap<ConnId, (f64, Instant)>,
     sessions: BTreeMap<String, Session>,
     next_session: u64,
 }
@@ -211,6 +225,7 @@ impl Hub {
         Self {
             cfg,
             peers: BTreeMap::new(),
+            allowance: BTreeMap::new(),
             sessions: BTreeMap::new(),
             next_session: 1,
         }
@@ -222,8 +237,26 @@ impl Hub {
     }
 
     /// A new connection was accepted.
-    pub fn connect(&mut self, conn: ConnId, _now: Instant) {
+    pub fn connect(&mut self, conn: ConnId, now: Instant) {
         self.peers.insert(conn, Peer::Fresh);
+        self.allowance.insert(conn, (self.cfg.client_message_burst, now));
+    }
+
+    /// Takes one message from a non-master connection's allowance (a token bucket).
+    fn allowed(&mut self, conn: ConnId, now: Instant) -> bool {
+        if matches!(self.peers.get(&conn), Some(Peer::Master(_))) {
+            return true;
+        }
+        let (burst, rate) = (self.cfg.client_message_burst, self.cfg.client_messages_per_s);
+        let (tokens, last) = self.allowance.entry(conn).or_insert((burst, now));
+        *tokens = (*tokens + now.saturating_duration_since(*last).as_secs_f64() * rate).min(burst);
+        *last = now;
+        if *tokens >= 1.0 {
+            *tokens -= 1.0;
+            true
+        } else {
+            false
+        }
     }
 
     /// One text frame from `conn`. Refused messages produce an `error` to `conn` only.
@@ -231,7 +264,9 @@ impl Hub {
         if !self.peers.contains_key(&conn) {
             return Vec::new();
         }
-        let result = if text.len() > self.cfg.max_message_bytes {
+        let result = if !self.allowed(conn, now) {
+            Err(SignalError::RateLimited { burst: self.cfg.client_message_burst, per_s: self.cfg.client_messages_per_s })
+        } else if text.len() > self.cfg.max_message_bytes {
             Err(SignalError::TooLarge {
                 len_bytes: text.len(),
                 max_bytes: self.cfg.max_message_bytes,
@@ -251,13 +286,14 @@ impl Hub {
             vec![Outgoing {
                 to: conn,
                 msg,
-                close: matches!(err, SignalError::Unauthorized),
+                close: matches!(err, SignalError::Unauthorized | SignalError::RateLimited { .. }),
             }]
         })
     }
 
     /// `conn` is gone: its master hears `leave`, or its clients hear `master_lost`.
     pub fn disconnect(&mut self, conn: ConnId, _now: Instant) -> Vec<Outgoing> {
+        self.allowance.remove(&conn);
         match self.peers.remove(&conn) {
             Some(Peer::Client {
                 session: Some(session),
@@ -763,6 +799,7 @@ mod tests {
             token: token.map(str::to_owned),
             heartbeat_timeout: TIMEOUT,
             max_message_bytes: 1024,
+            ..HubConfig::default()
         };
         (Hub::new(cfg), Instant::now())
     }

@@ -254,6 +254,8 @@ pub enum ErrorCode {
     WrongRole,
     /// A session message before `join` (or a master message before `register`).
     NotJoined,
+    /// Too many messages too fast; the connection is closed.
+    RateLimited,
 }
 
 /// A message to either kind of peer; serializes exactly like the inner message.

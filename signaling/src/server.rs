@@ -81,7 +81,7 @@ impl SignalState {
             interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             loop {
                 interval.tick().await;
-                state.with_hub(|hub| hub.tick(Instant::now()));
+                state.with_hub(None, |hub| hub.tick(Instant::now()));
             }
         })
     }
@@ -99,8 +99,12 @@ impl SignalState {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
-    /// Run `f` on the hub and deliver what it returns.
-    fn with_hub(&self, f: impl FnOnce(&mut Hub) -> Vec<Outgoing>) {
+    /// Run `f` on the hub for a message from `from` (`None`: the tick) and deliver what it
+    /// returns. A recipient whose queue is full loses the message; if someone else's
+    /// message filled it, that *sender* is disconnected (a client flooding its master must
+    /// not cost the master, and every session on it, its connection); a recipient that
+    /// does not read its own replies is disconnected.
+    fn with_hub(&self, from: Option<ConnId>, f: impl FnOnce(&mut Hub) -> Vec<Outgoing>) {
         let mut core = self.lock();
         let out = f(&mut core.hub);
         for Outgoing { to, msg, close } in out {
@@ -111,12 +115,16 @@ impl SignalState {
             if close {
                 ok &= tx.try_send(Frame::Close).is_ok();
             }
+            let culprit = match from {
+                Some(sender) if !ok && sender != to => sender,
+                _ => to,
+            };
+            if !ok {
+                tracing::warn!(conn = %culprit, recipient = %to, "a send queue is full; disconnecting the connection that filled it");
+            }
             if !ok || close {
-                if !ok {
-                    tracing::warn!(conn = %to, "peer is not reading its messages; disconnecting");
-                }
                 // Dropping the sender ends the connection task once its queue drains.
-                core.senders.remove(&to);
+                core.senders.remove(if ok { &to } else { &culprit });
             }
         }
     }
@@ -167,11 +175,11 @@ async fn run_connection(state: SignalState, conn: ConnId, mut socket: WebSocket)
     loop {
         tokio::select! {
             incoming = socket.recv() => match incoming {
-                Some(Ok(Message::Text(text))) => state.with_hub(|hub| hub.handle_text(conn, text.as_str(), Instant::now())),
+                Some(Ok(Message::Text(text))) => state.with_hub(Some(conn), |hub| hub.handle_text(conn, text.as_str(), Instant::now())),
                 // JSON in a binary frame is tolerated; anything else is a bad message.
                 Some(Ok(Message::Binary(bytes))) => {
                     let text = String::from_utf8_lossy(&bytes);
-                    state.with_hub(|hub| hub.handle_text(conn, &text, Instant::now()));
+                    state.with_hub(Some(conn), |hub| hub.handle_text(conn, &text, Instant::now()));
                 }
                 Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
                 Some(Ok(Message::Close(_))) | None => break,
@@ -196,6 +204,6 @@ async fn run_connection(state: SignalState, conn: ConnId, mut socket: WebSocket)
         }
     }
     state.lock().senders.remove(&conn);
-    state.with_hub(|hub| hub.disconnect(conn, Instant::now()));
+    state.with_hub(None, |hub| hub.disconnect(conn, Instant::now()));
     tracing::debug!("disconnected");
 }

@@ -219,3 +219,47 @@ async fn silent_master_times_out() {
     assert_eq!(recv(&mut client).await["code"], "master_lost");
     assert_eq!(http_get(addr, "/status").await["masters"], json!([]));
 }
+
+/// A client flooding ICE at its master (which is not reading) is cut off with
+/// `rate_limited`; the master keeps its connection and its other sessions. Before the
+/// allowance, ~100 messages filled the master's queue and signaling dropped the *master*.
+#[tokio::test]
+async fn a_relay_flood_drops_the_flooder_not_the_master() {
+    let addr = start().await;
+    let mut master = connect(addr).await;
+    send(&mut master, json!({"type":"register","name":"farm-1","capacity":4,"scenes":["cubes"]})).await;
+    assert_eq!(recv(&mut master).await["type"], "registered");
+    let (mut bystander, s1) = join(addr, &mut master).await;
+    let (mut flooder, _) = join(addr, &mut master).await;
+    let cand = json!({"candidate":"candidate:0 1 UDP 2122252543 10.0.0.1 50000 typ host","sdpMid":"0","sdpMLineIndex":0});
+    // The master reads nothing while 200 candidates are sent.
+    let mut refused = None;
+    for _ in 0..200 {
+        if flooder.send(Message::text(json!({"type":"ice","candidate":cand}).to_string())).await.is_err() {
+            break;
+        }
+    }
+    while let Ok(Some(Ok(msg))) = tokio::time::timeout(Duration::from_secs(2), flooder.next()).await {
+        if let Message::Text(text) = msg {
+            let v: Value = serde_json::from_str(text.as_str()).unwrap();
+            if v["type"] == "error" {
+                refused = Some(v);
+            }
+        }
+    }
+    let refused = refused.expect("the flooder was told why");
+    assert_eq!(refused["code"], "rate_limited", "{refused}");
+    // The master drains what was relayed (at most the burst) and still serves the bystander.
+    let mut relayed = 0;
+    loop {
+        let m = recv(&mut master).await;
+        if m["type"] == "leave" {
+            break;
+        }
+        assert_eq!(m["type"], "ice", "{m}");
+        relayed += 1;
+    }
+    assert!(relayed <= 40, "{relayed} candidates relayed");
+    round_trip(&mut bystander, &mut master, &s1).await;
+    assert_eq!(http_get(addr, "/status").await["masters"][0]["sessions"], 1);
+}

@@ -140,6 +140,17 @@ impl WebrtcPeer {
                         let _ = open_tx.send(PeerEvent::ChannelOpen).await;
                     })
                 }));
+                // Without its pose channel a session is dead weight: end it (and free its
+                // slot) instead of streaming a frozen camera. webrtc-rs takes an empty
+                // message as the end of the stream and closes the channel.
+                let close_tx = tx.clone();
+                dc.on_close(Box::new(move || {
+                    let tx = close_tx.clone();
+                    Box::pin(async move {
+                        let why = "the pose channel closed (an empty or final message ends it)".to_string();
+                        let _ = tx.send(PeerEvent::Closed(why)).await;
+                    })
+                }));
                 dc.on_message(Box::new(move |msg: DataChannelMessage| {
                     let event = if msg.data.len() > MAX_CHANNEL_MESSAGE {
                         PeerEvent::Oversized(msg.data.len())

@@ -28,6 +28,10 @@ pub const MAX_FPS: u32 = 120;
 
 /// Longest signaling message (one JSON text frame), bytes.
 pub const MAX_SIGNAL_MESSAGE_BYTES: usize = 64 * 1024;
+/// Signaling messages a client connection may send per second on average, and in one
+/// burst (a session needs about 15: join, offer, ICE candidates, leave).
+pub const CLIENT_SIGNAL_MESSAGES_PER_S: f64 = 20.0;
+pub const CLIENT_SIGNAL_MESSAGE_BURST: f64 = 40.0;
 /// Longest message on the pose data channel, bytes; longer ones are refused unread.
 pub const MAX_POSE_MESSAGE_BYTES: usize = 4096;
 

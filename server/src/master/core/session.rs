@@ -170,7 +170,9 @@ impl Session {
                 return Err(e);
             }
         };
-        if self.newest_seq.is_some_and(|newest| msg.seq <= newest) {
+        // Serial-number order (RFC 1982): sequence numbers wrap after 2³²−1, and a pose is
+        // newer when it is less than 2³¹ ahead.
+        if self.newest_seq.is_some_and(|newest| (msg.seq.wrapping_sub(newest) as i32) <= 0) {
             self.counters.poses_stale += 1;
             return Ok(false);
         }
@@ -438,6 +440,17 @@ mod tests {
             }
         }
         assert!((59..=61).contains(&frames), "{frames} frames in 2 s at 30 fps");
+    }
+
+    #[test]
+    fn sequence_numbers_wrap() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 50);
+        for seq in [u32::MAX - 1, u32::MAX, 0, 1] {
+            assert_eq!(s.on_pose(&pose(seq, 0.0), t0), Ok(true), "seq {seq} follows");
+        }
+        assert_eq!(s.on_pose(&pose(u32::MAX, 0.0), t0), Ok(false), "a pose from before the wrap is stale");
+        assert_eq!(s.on_pose(&pose(1, 0.0), t0), Ok(false));
     }
 
     #[test]
