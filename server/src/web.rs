@@ -35,14 +35,22 @@ impl LocalServer {
 /// default). Returns once the master is registered and its render workers have measured
 /// their throughput; everything runs on spawned tasks.
 pub async fn spawn_local(listener: tokio::net::TcpListener, catalog: Arc<Catalog>, cfg: MasterConfig) -> std::io::Result<LocalServer> {
+    spawn_local_with(listener, catalog, cfg, nephele_signaling::HubConfig::default()).await
+}
+
+/// [`spawn_local`] with signaling's secrets. The in-process master registers with a
+/// masters' secret of its own (made here unless `hub` has one), so no one else can.
+pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Catalog>, mut cfg: MasterConfig, mut hub: nephele_signaling::HubConfig) -> std::io::Result<LocalServer> {
     let addr = listener.local_addr()?;
-    let hub = nephele_signaling::HubConfig { token: cfg.token.clone(), ..Default::default() };
+    let master_token = hub.master_token.clone().unwrap_or_else(random_secret);
+    hub.master_token = Some(master_token.clone());
+    cfg.token = Some(master_token);
     let signaling = nephele_signaling::SignalState::new(hub);
     signaling.spawn_tick_task();
     let metrics = Arc::new(MasterMetrics::new());
     let app = router(signaling.clone(), Arc::clone(&catalog), Arc::clone(&metrics));
     tokio::spawn(async move {
-        if let Err(e) = axum::serve(listener, app).await {
+        if let Err(e) = axum::serve(listener, app.into_make_service_with_connect_info::<std::net::SocketAddr>()).await {
             tracing::error!("HTTP server failed: {e}");
         }
     });
@@ -62,6 +70,13 @@ pub async fn spawn_local(listener: tokio::net::TcpListener, catalog: Arc<Catalog
         wait_for(120, || metrics.farm_rays_per_s.get() > 0.0).await.ok_or_else(|| ready("had no render worker up", 120))?;
     }
     Ok(LocalServer { addr, metrics, signaling })
+}
+
+/// 128 random bits from the OS, hex.
+fn random_secret() -> String {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes).expect("the OS random source");
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 async fn wait_for(secs: u64, done: impl Fn() -> bool) -> Option<()> {
@@ -95,9 +110,19 @@ const PAGES: &[(&str, &str, &str)] = &[
 /// Pages plus `/scenes` and `/metrics`, merged with signaling's routes.
 pub fn router(signaling: nephele_signaling::SignalState, catalog: Arc<Catalog>, metrics: Arc<MasterMetrics>) -> Router {
     let scenes = serde_json::json!({ "scenes": catalog.names(), "default": catalog.default_scene });
+    let gate = signaling.clone();
     with_pages(nephele_signaling::app(signaling))
         .route("/scenes", get(move || async move { Json(scenes.clone()) }))
-        .route("/metrics", get(move || async move { metrics_page(&metrics) }))
+        .route(
+            "/metrics",
+            get(move |request: axum::extract::Request| async move {
+                if gate.operator_allowed(&request) {
+                    metrics_page(&metrics)
+                } else {
+                    (StatusCode::UNAUTHORIZED, "operator pages need the operator token (Authorization: Bearer …) or a loopback address\n").into_response()
+                }
+            }),
+        )
         .fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
 }
 

@@ -36,8 +36,14 @@ impl std::fmt::Display for ConnId {
 /// Hub settings.
 #[derive(Clone, Debug)]
 pub struct HubConfig {
-    /// Shared secret that `join` and `register` must carry; `None` disables the check.
+    /// The clients' secret: `join` must carry it; `None` lets anyone join.
     pub token: Option<String>,
+    /// The masters' secret: `register` must carry it (never the clients' token); `None`
+    /// lets anyone register a master — only for signaling that nobody else can reach.
+    pub master_token: Option<String>,
+    /// The operators' secret for `GET /status` (and a server's `/metrics`), as
+    /// `Authorization: Bearer …`; `None` serves them to loopback addresses only.
+    pub operator_token: Option<String>,
     /// A master silent for longer than this is dropped and its clients told `master_lost`.
     pub heartbeat_timeout: Duration,
     /// Longest accepted text message in bytes; longer ones get `error too_large`.
@@ -54,6 +60,8 @@ impl Default for HubConfig {
     fn default() -> Self {
         Self {
             token: None,
+            master_token: None,
+            operator_token: None,
             heartbeat_timeout: Duration::from_secs(15),
             max_message_bytes: nephele_limits::MAX_SIGNAL_MESSAGE_BYTES,
             client_messages_per_s: nephele_limits::CLIENT_SIGNAL_MESSAGES_PER_S,
@@ -473,19 +481,16 @@ impl Hub {
         }
     }
 
-    fn check_token(&self, token: Option<&str>) -> Result<(), SignalError> {
-        match &self.cfg.token {
-            Some(expected)
-                if !token.is_some_and(|t| constant_time_eq(t.as_bytes(), expected.as_bytes())) =>
-            {
-                Err(SignalError::Unauthorized)
-            }
+    /// `token` against `expected` (the clients' or the masters' secret).
+    fn check_token(expected: Option<&str>, token: Option<&str>) -> Result<(), SignalError> {
+        match expected {
+            Some(expected) if !token.is_some_and(|t| secrets_match(t, expected)) => Err(SignalError::Unauthorized),
             _ => Ok(()),
         }
     }
 
     fn join(&mut self, conn: ConnId, req: JoinRequest, token: Option<&str>) -> Res {
-        self.check_token(token)?;
+        Self::check_token(self.cfg.token.as_deref(), token)?;
         if let Some(Peer::Client {
             session: Some(session),
         }) = self.peers.get(&conn)
@@ -607,7 +612,7 @@ impl Hub {
         token: Option<&str>,
         now: Instant,
     ) -> Res {
-        self.check_token(token)?;
+        Self::check_token(self.cfg.master_token.as_deref(), token)?;
         validate_name("master name", name)?;
         if scenes.len() > MAX_SCENES_PER_MASTER {
             return Err(SignalError::BadRequest(format!(
@@ -782,9 +787,11 @@ fn kind(msg: &ToSignal) -> &'static str {
     }
 }
 
-/// Compare secrets without an early exit on the first differing byte.
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+/// Compares secrets in constant time (`subtle`), so timing does not tell how much of a
+/// guess was right.
+pub fn secrets_match(given: &str, expected: &str) -> bool {
+    use subtle::ConstantTimeEq;
+    given.as_bytes().ct_eq(expected.as_bytes()).into()
 }
 
 #[cfg(test)]
@@ -927,6 +934,7 @@ mod tests {
     #[test]
     fn token_is_required_when_configured() {
         let (mut hub, t0) = hub_with(Some("s3cret"));
+        hub.cfg.master_token = Some("m4ster".into());
         hub.connect(ConnId(1), t0);
         let out = send(
             &mut hub,
@@ -943,10 +951,18 @@ mod tests {
             t0,
         );
         assert_eq!(error_code(&out).1, "unauthorized");
+        // The clients' token never registers a master.
         let out = send(
             &mut hub,
             1,
             json!({"type":"register","name":"m","capacity":1,"scenes":["cubes"],"token":"s3cret"}),
+            t0,
+        );
+        assert_eq!(error_code(&out).1, "unauthorized");
+        let out = send(
+            &mut hub,
+            1,
+            json!({"type":"register","name":"m","capacity":1,"scenes":["cubes"],"token":"m4ster"}),
             t0,
         );
         assert_eq!(
@@ -960,8 +976,11 @@ mod tests {
             "unauthorized"
         );
         let mut join = join_json();
+        join["token"] = json!("m4ster");
+        assert_eq!(error_code(&send(&mut hub, 2, join.clone(), t0)).1, "unauthorized", "the masters' token does not join");
         join["token"] = json!("s3cret");
         assert_eq!(json_of(&send(&mut hub, 2, join, t0))[0].1["type"], "joined");
+        assert!(secrets_match("abc", "abc") && !secrets_match("abd", "abc") && !secrets_match("ab", "abc"));
     }
 
     #[test]

@@ -43,6 +43,7 @@ pub struct SignalState {
 
 struct Shared {
     core: Mutex<Core>,
+    operator_token: Option<String>,
     next_conn: AtomicU64,
     max_message_bytes: usize,
     heartbeat_timeout: Duration,
@@ -57,6 +58,7 @@ impl SignalState {
     /// A fresh hub with `cfg`. Remember to [`spawn_tick_task`](Self::spawn_tick_task).
     pub fn new(cfg: HubConfig) -> Self {
         let (max_message_bytes, heartbeat_timeout) = (cfg.max_message_bytes, cfg.heartbeat_timeout);
+        let operator_token = cfg.operator_token.clone();
         let core = Core {
             hub: Hub::new(cfg),
             senders: HashMap::new(),
@@ -64,6 +66,7 @@ impl SignalState {
         Self {
             inner: Arc::new(Shared {
                 core: Mutex::new(core),
+                operator_token,
                 next_conn: AtomicU64::new(1),
                 max_message_bytes,
                 heartbeat_timeout,
@@ -84,6 +87,21 @@ impl SignalState {
                 state.with_hub(None, |hub| hub.tick(Instant::now()));
             }
         })
+    }
+
+    /// Whether `request` may read operator pages (`/status`, `/metrics`): it carries the
+    /// operator token as `Authorization: Bearer …`, or, with no operator token configured,
+    /// it comes from a loopback address (the server must be served with connect info).
+    pub fn operator_allowed(&self, request: &axum::extract::Request) -> bool {
+        match &self.inner.operator_token {
+            Some(expected) => request
+                .headers()
+                .get(axum::http::header::AUTHORIZATION)
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.strip_prefix("Bearer "))
+                .is_some_and(|given| crate::hub::secrets_match(given, expected)),
+            None => request.extensions().get::<axum::extract::ConnectInfo<std::net::SocketAddr>>().is_some_and(|c| c.0.ip().is_loopback()),
+        }
     }
 
     /// Current masters and load.
@@ -143,12 +161,15 @@ pub fn app(state: SignalState) -> Router {
 pub async fn serve(listener: tokio::net::TcpListener, cfg: HubConfig) -> std::io::Result<()> {
     let state = SignalState::new(cfg);
     let tick = state.spawn_tick_task();
-    let result = axum::serve(listener, app(state)).await;
+    let result = axum::serve(listener, app(state).into_make_service_with_connect_info::<std::net::SocketAddr>()).await;
     tick.abort();
     result
 }
 
-async fn status(State(state): State<SignalState>) -> Response {
+async fn status(State(state): State<SignalState>, request: axum::extract::Request) -> Response {
+    if !state.operator_allowed(&request) {
+        return (axum::http::StatusCode::UNAUTHORIZED, "operator pages need the operator token (Authorization: Bearer …) or a loopback address\n").into_response();
+    }
     axum::Json(state.stats()).into_response()
 }
 

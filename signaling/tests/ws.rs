@@ -263,3 +263,27 @@ async fn a_relay_flood_drops_the_flooder_not_the_master() {
     round_trip(&mut bystander, &mut master, &s1).await;
     assert_eq!(http_get(addr, "/status").await["masters"][0]["sessions"], 1);
 }
+
+/// With an operator token, `/status` needs it (`Authorization: Bearer …`); masters need
+/// the masters' token and the clients' token does not register one.
+#[tokio::test]
+async fn status_and_registration_need_their_own_secrets() {
+    let addr = start_with(HubConfig { token: Some("viewer".into()), master_token: Some("master".into()), operator_token: Some("operator".into()), ..HubConfig::default() }).await;
+    let get = |auth: Option<&'static str>| async move {
+        let mut tcp = TcpStream::connect(addr).await.unwrap();
+        let header = auth.map_or(String::new(), |a| format!("Authorization: Bearer {a}\r\n"));
+        tcp.write_all(format!("GET /status HTTP/1.1\r\nHost: x\r\n{header}Connection: close\r\n\r\n").as_bytes()).await.unwrap();
+        let mut response = String::new();
+        tcp.read_to_string(&mut response).await.unwrap();
+        response
+    };
+    assert!(get(None).await.starts_with("HTTP/1.1 401"));
+    assert!(get(Some("viewer")).await.starts_with("HTTP/1.1 401"));
+    assert!(get(Some("operator")).await.starts_with("HTTP/1.1 200"));
+    let mut rogue = connect(addr).await;
+    send(&mut rogue, json!({"type":"register","name":"rogue","capacity":99,"scenes":["cubes"],"token":"viewer"})).await;
+    assert_eq!(recv(&mut rogue).await["code"], "unauthorized");
+    let mut master = connect(addr).await;
+    send(&mut master, json!({"type":"register","name":"farm-1","capacity":1,"scenes":["cubes"],"token":"master"})).await;
+    assert_eq!(recv(&mut master).await["type"], "registered");
+}

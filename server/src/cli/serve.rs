@@ -38,9 +38,10 @@ pub struct MasterOptions {
     /// Sessions this master accepts at once (a hard cap; admission by load comes first).
     #[arg(long, default_value_t = 8)]
     pub capacity: u32,
-    /// Shared token for signaling (clients must present it too).
-    #[arg(long)]
-    pub token: Option<String>,
+    /// The masters' secret this master presents when it registers with signaling (its
+    /// `--master-token`); `nephele serve` makes one of its own.
+    #[arg(long, env = "NEPHELE_MASTER_TOKEN", hide_env_values = true)]
+    pub master_token: Option<String>,
     /// Offer loopback ICE candidates only (a browser on this machine, tests).
     #[arg(long)]
     pub loopback_only: bool,
@@ -131,7 +132,7 @@ impl MasterOptions {
         let catalog = Arc::new(Catalog::load(&self.scenes, backend.as_ref(), settings)?);
         let cfg = MasterConfig {
             name: name.into(),
-            token: self.token.clone(),
+            token: self.master_token.clone(),
             rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
             core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching, admission: self.admission, ..Default::default() },
             workers: self.workers,
@@ -148,6 +149,13 @@ pub struct ServeArgs {
     /// HTTP address for the pages and signaling; port 0 picks a free port.
     #[arg(long, default_value = "127.0.0.1:8080")]
     pub listen: String,
+    /// The clients' secret: a page joins only with `?token=…` (`None`: anyone may join).
+    #[arg(long, env = "NEPHELE_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// The operators' secret for /status and /metrics (`Authorization: Bearer …`); without
+    /// it they answer loopback addresses only.
+    #[arg(long, env = "NEPHELE_OPERATOR_TOKEN", hide_env_values = true)]
+    pub operator_token: Option<String>,
     #[command(flatten)]
     pub master: MasterOptions,
 }
@@ -185,9 +193,16 @@ pub struct SignalArgs {
     /// Address to listen on; port 0 picks a free port (printed).
     #[arg(long, default_value = "127.0.0.1:8000")]
     pub listen: String,
-    /// Shared token that clients and masters must present.
-    #[arg(long)]
+    /// The clients' secret (`join`); `None`: anyone may join.
+    #[arg(long, env = "NEPHELE_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// The masters' secret (`register`), never the clients'; needed whenever `--token` is.
+    #[arg(long, env = "NEPHELE_MASTER_TOKEN", hide_env_values = true)]
+    pub master_token: Option<String>,
+    /// The operators' secret for /status (`Authorization: Bearer …`); without it /status
+    /// answers loopback addresses only.
+    #[arg(long, env = "NEPHELE_OPERATOR_TOKEN", hide_env_values = true)]
+    pub operator_token: Option<String>,
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
@@ -197,7 +212,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
         let names = catalog.names().join(", ");
         let backend = catalog.backend_name.clone();
-        let server = web::spawn_local(listener, catalog, cfg).await?;
+        let hub = nephele_signaling::HubConfig { token: args.token.clone(), operator_token: args.operator_token.clone(), master_token: args.master.master_token.clone(), ..Default::default() };
+        let server = web::spawn_local_with(listener, catalog, cfg, hub).await?;
         let addr = server.addr;
         println!("Nephele is serving {names} on {backend} — open http://{addr}/ (AR: http://{addr}/ar.html, metrics: http://{addr}/metrics)");
         tokio::signal::ctrl_c().await?;
@@ -216,6 +232,7 @@ pub fn master(args: MasterArgs) -> Result<()> {
             println!("metrics on http://{}/metrics", listener.local_addr()?);
             let m = Arc::clone(&metrics);
             let app = axum::Router::new().route("/metrics", axum::routing::get(move || async move { m.encode() }));
+            // Bind it to loopback or a private network: it has no token of its own.
             tokio::spawn(async move { axum::serve(listener, app).await });
         }
         master::run(args.signal, cfg, catalog, metrics).await
@@ -228,10 +245,14 @@ pub fn signal(args: SignalArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
         let addr = listener.local_addr()?;
         println!("signaling on ws://{addr}/signal (status: http://{addr}/status) — the pages: http://{addr}/");
-        let cfg = nephele_signaling::HubConfig { token: args.token, ..Default::default() };
+        if args.token.is_some() && args.master_token.is_none() {
+            anyhow::bail!("--token guards joins; masters need their own secret too: give --master-token (masters never accept the clients' token)");
+        }
+        let cfg = nephele_signaling::HubConfig { token: args.token, master_token: args.master_token, operator_token: args.operator_token, ..Default::default() };
         let state = nephele_signaling::SignalState::new(cfg);
         state.spawn_tick_task();
-        axum::serve(listener, web::signaling_router(state)).await.context("signaling server failed")
+        let app = web::signaling_router(state).into_make_service_with_connect_info::<std::net::SocketAddr>();
+        axum::serve(listener, app).await.context("signaling server failed")
     })
 }
 
