@@ -405,11 +405,17 @@ fn mean(values: impl Iterator<Item = f64>) -> f64 {
 }
 
 /// PSNR over the RGB channels of two RGBA8 images of the same size, dB (∞ if identical).
-/// Both eyes of `centre` (its intrinsics are replaced by the trace's at the eye size), side
-/// by side in a `width`×`height` frame, `baseline` apart.
+/// Both eyes of `centre`, side by side in a `width`×`height` frame, `baseline` apart.
 fn stereo_pose(centre: &PoseMessage, width: u32, height: u32, baseline: f32) -> MultiViewPose {
     let eye_w = width / 2;
-    let k = Intrinsics::from_fov_x(eye_w, height, 2.0 * (0.5 * centre.intrinsics.width as f32 / centre.intrinsics.fx).atan());
+    // The trace camera's focal length over √2: the object covers half as many pixels in
+    // each eye as in the mono frame, so both eyes together render the same rays *and* the
+    // same hits as one mono view of the same total pixels — what is left is the cost of
+    // two views in one task. (At the mono focal length each eye would hold as much of the
+    // object as the whole mono frame: twice the work.)
+    let c = centre.intrinsics;
+    let f = std::f32::consts::FRAC_1_SQRT_2;
+    let k = Intrinsics { fx: c.fx * f, fy: c.fy * f, cx: 0.5 * eye_w as f32, cy: 0.5 * height as f32, width: eye_w, height };
     let clip_from_camera = projection_from_intrinsics(&k, 0.01, 1000.0);
     let views = [(-0.5f32, 0), (0.5, eye_w)]
         .into_iter()
