@@ -203,7 +203,13 @@ async fn run_connection(state: SignalState, conn: ConnId, mut socket: WebSocket)
                     state.with_hub(Some(conn), |hub| hub.handle_text(conn, &text, Instant::now()));
                 }
                 Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
-                Some(Ok(Message::Close(_))) | None => break,
+                // Answer the close handshake, so clients see a clean close and not 1006:
+                // tungstenite queued the reply, and the next read flushes it.
+                Some(Ok(Message::Close(_))) => {
+                    let _ = tokio::time::timeout(Duration::from_secs(1), socket.recv()).await;
+                    break;
+                }
+                None => break,
                 Some(Err(err)) => {
                     tracing::debug!(%err, "websocket read failed");
                     break;

@@ -287,3 +287,18 @@ async fn status_and_registration_need_their_own_secrets() {
     send(&mut master, json!({"type":"register","name":"farm-1","capacity":1,"scenes":["cubes"],"token":"master"})).await;
     assert_eq!(recv(&mut master).await["type"], "registered");
 }
+
+/// A client that closes the websocket gets the close handshake answered (a clean close,
+/// not 1006 "abnormal closure").
+#[tokio::test]
+async fn the_close_handshake_is_answered() {
+    use tokio_tungstenite::tungstenite::protocol::{CloseFrame, frame::coding::CloseCode};
+    let addr = start().await;
+    let mut client = connect(addr).await;
+    client.send(Message::Close(Some(CloseFrame { code: CloseCode::Normal, reason: "bye".into() }))).await.unwrap();
+    let reply = tokio::time::timeout(Duration::from_secs(5), client.next()).await.expect("no reply to close");
+    match reply {
+        Some(Ok(Message::Close(Some(frame)))) => assert_eq!(frame.code, CloseCode::Normal),
+        other => panic!("expected a close frame back, got {other:?}"),
+    }
+}
