@@ -72,3 +72,43 @@ fn split_deployment_signal_master_and_replay_of_a_shipped_trace() {
     panic!("the master never took a session: {last}");
 }
 
+
+/// A master that stops answering (SIGSTOP) is dropped by signaling within ~3 s (one
+/// heartbeat a second, 3 s of silence), so joins stop going to it; it used to take ~16 s.
+#[test]
+fn a_stopped_master_is_noticed_within_seconds() {
+    use std::io::{Read, Write};
+    let root = repo();
+    let asset = root.join("examples/assets/trio-small.nolf");
+    let (_signal, addr) = spawn_signal();
+    let url = format!("ws://{addr}/signal");
+    let scene = format!("trio={}", asset.display());
+    let master = Reap(nephele().args(["master", "--signal", &url, "--scene", &scene, "--backend", "cpu"]).stderr(std::process::Stdio::null()).spawn().unwrap());
+    let masters = || {
+        let mut s = std::net::TcpStream::connect(&addr).unwrap();
+        write!(s, "GET /status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
+        let mut body = String::new();
+        s.read_to_string(&mut body).unwrap();
+        let json: serde_json::Value = serde_json::from_str(body.split("\r\n\r\n").nth(1).unwrap()).unwrap();
+        json["masters"].as_array().unwrap().len()
+    };
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while masters() == 0 {
+        assert!(std::time::Instant::now() < deadline, "the master never registered");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    // Registered and heart-beating; now it stops.
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let pid = master.0.id().to_string();
+    assert!(std::process::Command::new("kill").args(["-STOP", &pid]).status().unwrap().success());
+    let stopped = std::time::Instant::now();
+    while masters() > 0 {
+        assert!(stopped.elapsed() < std::time::Duration::from_secs(10), "the stopped master is still listed");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let noticed = stopped.elapsed();
+    let _ = std::process::Command::new("kill").args(["-CONT", &pid]).status();
+    println!("stopped master dropped after {:.2} s", noticed.as_secs_f64());
+    // Silence of 3 s, checked four times per timeout: at most ~3.75 s (+ one heartbeat).
+    assert!(noticed <= std::time::Duration::from_millis(4800), "noticed after {noticed:?}");
+}

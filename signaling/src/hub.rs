@@ -62,7 +62,7 @@ impl Default for HubConfig {
             token: None,
             master_token: None,
             operator_token: None,
-            heartbeat_timeout: Duration::from_secs(15),
+            heartbeat_timeout: Duration::from_millis(nephele_limits::MASTER_SILENCE_TIMEOUT_MS),
             max_message_bytes: nephele_limits::MAX_SIGNAL_MESSAGE_BYTES,
             client_messages_per_s: nephele_limits::CLIENT_SIGNAL_MESSAGES_PER_S,
             client_message_burst: nephele_limits::CLIENT_SIGNAL_MESSAGE_BURST,

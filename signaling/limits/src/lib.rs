@@ -28,6 +28,12 @@ pub const MAX_FPS: u32 = 120;
 
 /// Longest signaling message (one JSON text frame), bytes.
 pub const MAX_SIGNAL_MESSAGE_BYTES: usize = 64 * 1024;
+/// A master sends signaling a heartbeat this often, milliseconds…
+pub const MASTER_HEARTBEAT_EVERY_MS: u64 = 1000;
+/// …and signaling drops a master silent for this long (a stopped or cut-off master gets no
+/// new joins after ~3 s, and its clients are told), milliseconds.
+pub const MASTER_SILENCE_TIMEOUT_MS: u64 = 3000;
+
 /// Signaling messages a client connection may send per second on average, and in one
 /// burst (a session needs about 15: join, offer, ICE candidates, leave).
 pub const CLIENT_SIGNAL_MESSAGES_PER_S: f64 = 20.0;

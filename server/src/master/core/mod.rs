@@ -48,7 +48,7 @@ use crate::wire::{FrameLayout, FrameTimes, QuiltInfo, ToViewer, Viewport, media:
 /// A peer must connect within this time of its join.
 pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(30);
 /// Heartbeats to signaling carry the session count and free capacity this often.
-pub const HEARTBEAT_EVERY: Duration = Duration::from_secs(5);
+pub const HEARTBEAT_EVERY: Duration = Duration::from_millis(nephele_limits::MASTER_HEARTBEAT_EVERY_MS);
 /// A camera that moved within this time counts as moving for the fair scale.
 pub const ACTIVE_WINDOW: Duration = Duration::from_secs(1);
 
