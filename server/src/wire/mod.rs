@@ -374,10 +374,12 @@ pub fn check_pose(bytes: &[u8], layout: &FrameLayout) -> Result<CheckedPose, Pos
                 .into_iter()
                 .enumerate()
                 .map(|(i, view)| {
+                    // A centre camera near a limit may push a side view past it.
+                    view.validate().map_err(|e| PoseRejection::Camera(format!("quilt view {i}: {e}")))?;
                     let (x, y) = q.tile_origin(i as u32, tile_w, tile_h);
-                    FrameView { view, viewport: Viewport { x, y, width: tile_w, height: tile_h } }
+                    Ok(FrameView { view, viewport: Viewport { x, y, width: tile_w, height: tile_h } })
                 })
-                .collect();
+                .collect::<Result<_, PoseRejection>>()?;
             Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, views, instance })
         }
     }
