@@ -10,9 +10,10 @@
 import { OrbitCamera, attachOrbitControls } from './camera.js';
 import { Connection, ensureCapturePermission, fetchScenes, readPageOptions } from './connection.js';
 import { orbitPose } from './pose.js';
-import { renderStatus } from './hud.js';
+import { makeNote, renderStatus } from './hud.js';
 
 const $ = (id) => document.getElementById(id);
+const note = makeNote($('note'));
 const canvas = $('canvas');
 const video = $('video');       // the stream
 const cameraVideo = $('camera'); // the device camera
@@ -80,16 +81,7 @@ $('scale').addEventListener('input', (e) => {
   $('scaleOut').textContent = `${anchor.scale.toFixed(2)}×`;
 });
 
-// ───────────────────────────────── HUD + notes ──────────────────────────────────
-
-let noteTimer = null;
-function note(text, ms = 0) {
-  const el = $('note');
-  el.textContent = text || '';
-  el.hidden = !text;
-  clearTimeout(noteTimer);
-  if (ms) noteTimer = setTimeout(() => { el.hidden = true; }, ms);
-}
+// ────────────────────────────────────── HUD ─────────────────────────────────────
 
 function render() { renderStatus(conn); }
 

@@ -190,3 +190,16 @@ export function attachOrbitControls(element, camera, { onTap, viewportHeight } =
     camera.zoom(Math.exp(clamp(px, -200, 200) * 0.0015));
   }, { passive: false });
 }
+
+/**
+ * Orbit gestures on `stage` over a letterboxed `video` (object-fit: contain) whose frame is
+ * `frameSize()` = [width, height] pixels: drags are measured against the image's shown height.
+ */
+export function attachVideoOrbit(stage, video, camera, frameSize, more = {}) {
+  const viewportHeight = () => {
+    const r = video.getBoundingClientRect();
+    const [w, h] = frameSize();
+    return Math.min(r.height, (r.width * h) / w);
+  };
+  return attachOrbitControls(stage, camera, { ...more, viewportHeight });
+}

@@ -22,6 +22,14 @@ let capturePromise = null;
  * null on failure (no camera, denied, insecure context): the session goes on without it.
  * The first caller's constraints win; the AR page asks first for its environment camera.
  */
+/**
+ * For pages that never show the camera: take the capture grant (it unlocks loopback ICE
+ * candidates) and disable the track at once (keeps the grant, turns the camera light off).
+ */
+export function warmUpCapture() {
+  return ensureCapturePermission({ video: true }).then((s) => s?.getTracks().forEach((t) => { t.enabled = false; }));
+}
+
 export function ensureCapturePermission(constraints = { video: true }) {
   if (!capturePromise) {
     const md = navigator.mediaDevices;

@@ -43,3 +43,14 @@ export function renderStatus(conn, extra = []) {
     return [dt, dd];
   }));
 }
+
+/** A transient note in `el`: `note(text, ms)` shows it (for `ms`, or until replaced). */
+export function makeNote(el) {
+  let timer = null;
+  return (text, ms = 0) => {
+    el.textContent = text || '';
+    el.hidden = !text;
+    clearTimeout(timer);
+    if (ms) timer = setTimeout(() => { el.hidden = true; }, ms);
+  };
+}

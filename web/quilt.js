@@ -20,8 +20,8 @@
 // fragment shader (HoloPlayCore.Shader) in WebGL2. Otherwise the page says in words that no
 // Looking Glass display was found. None of this may throw.
 
-import { OrbitCamera, attachOrbitControls, clamp } from './camera.js';
-import { Connection, ensureCapturePermission, fetchScenes, readPageOptions } from './connection.js';
+import { OrbitCamera, attachVideoOrbit, clamp } from './camera.js';
+import { Connection, fetchScenes, readPageOptions, warmUpCapture } from './connection.js';
 import { orbitPose } from './pose.js';
 import { renderStatus } from './hud.js';
 
@@ -83,13 +83,8 @@ conn.exposeApi({
   get lookingGlass() { return lkgStatus; },
 });
 
-ensureCapturePermission({ video: true }).then((s) => s?.getTracks().forEach((t) => { t.enabled = false; }));
-
-function shownHeight() {
-  const r = video.getBoundingClientRect();
-  return Math.min(r.height, (r.width * options.height) / options.width);
-}
-attachOrbitControls($('stage'), camera, { viewportHeight: shownHeight });
+warmUpCapture();
+attachVideoOrbit($('stage'), video, camera, () => [options.width, options.height]);
 
 function render() {
   const f = conn.lastFrame;

@@ -5,8 +5,8 @@
 // error banner. The session itself (signaling, WebRTC, stats) is in connection.js, the
 // camera in camera.js, the pose message in pose.js and the HUD in hud.js.
 
-import { OrbitCamera, attachOrbitControls } from './camera.js';
-import { Connection, ensureCapturePermission, fetchScenes, readPageOptions } from './connection.js';
+import { OrbitCamera, attachVideoOrbit } from './camera.js';
+import { Connection, fetchScenes, readPageOptions, warmUpCapture } from './connection.js';
 import { orbitPose } from './pose.js';
 import { renderStatus } from './hud.js';
 
@@ -36,17 +36,8 @@ const conn = new Connection({
 });
 conn.exposeApi();
 
-// The capture grant only unlocks loopback ICE candidates; the camera image is never used,
-// so disable the track (keeps the grant, lets browsers turn the camera light off).
-ensureCapturePermission({ video: true }).then((s) => s?.getTracks().forEach((t) => { t.enabled = false; }));
-
-// The displayed image height in CSS pixels (the video is letterboxed with object-fit: contain).
-function shownHeight() {
-  const r = video.getBoundingClientRect();
-  const w = conn.params?.width || 640, h = conn.params?.height || 480;
-  return Math.min(r.height, (r.width * h) / w);
-}
-attachOrbitControls($('stage'), camera, { viewportHeight: shownHeight });
+warmUpCapture();
+attachVideoOrbit($('stage'), video, camera, () => [conn.params?.width || 640, conn.params?.height || 480]);
 
 function render() { renderStatus(conn); }
 

@@ -34,10 +34,10 @@
 // Debug surface: window.nephele as on the viewer, plus lastPoseBytes, viewsPerPose, xrActive
 // and xrPosesSent (poses sent from XR views).
 
-import { OrbitCamera, attachOrbitControls, DEG, mat4Mul, mat4TranslateScale, offsetAlongX } from './camera.js';
-import { Connection, ensureCapturePermission, fetchScenes, readPageOptions } from './connection.js';
+import { OrbitCamera, attachVideoOrbit, DEG, mat4Mul, mat4TranslateScale, offsetAlongX } from './camera.js';
+import { Connection, fetchScenes, readPageOptions, warmUpCapture } from './connection.js';
 import { encodePoseViews, perspective, frustumTangents } from './pose.js';
-import { renderStatus } from './hud.js';
+import { makeNote, renderStatus } from './hud.js';
 
 /** XR → world: +90° about x (XR +y up → world +z up, XR −z forward → world +y). */
 export const WORLD_FROM_XR = new Float32Array([1, 0, 0, 0, 0, 0, 1, 0, 0, -1, 0, 0, 0, 0, 0, 1]);
@@ -50,6 +50,7 @@ export const EYE_OFFSET_M = 0.032;
 const PREVIEW_FOV_Y = 90 * DEG;
 
 const $ = (id) => document.getElementById(id);
+const note = makeNote($('note'));
 const video = $('video');
 const sceneEl = document.querySelector('a-scene');
 const enterButton = $('enter');
@@ -116,13 +117,8 @@ conn.exposeApi({
   get xrPosesSent() { return xrPosesSent; },
 });
 
-ensureCapturePermission({ video: true }).then((s) => s?.getTracks().forEach((t) => { t.enabled = false; }));
-
-function shownHeight() {
-  const r = video.getBoundingClientRect();
-  return Math.min(r.height, (r.width * options.height) / options.width);
-}
-attachOrbitControls($('stage'), camera, { viewportHeight: shownHeight });
+warmUpCapture();
+attachVideoOrbit($('stage'), video, camera, () => [options.width, options.height]);
 
 function render() {
   const f = conn.lastFrame;
@@ -143,14 +139,6 @@ function bannerText() {
   return [conn.banner?.text, pageBanner].filter(Boolean).join('\n') || null;
 }
 
-let noteTimer = null;
-function note(text, ms = 0) {
-  const el = $('note');
-  el.textContent = text || '';
-  el.hidden = !text;
-  clearTimeout(noteTimer);
-  if (ms) noteTimer = setTimeout(() => { el.hidden = true; }, ms);
-}
 
 // ───────────────────────────────── WebXR via A-Frame ─────────────────────────────
 

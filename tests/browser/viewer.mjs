@@ -9,30 +9,13 @@
 // Neither page may report errors. Prints one JSON line ({"ok":true,...} or {"ok":false,
 // "error":...}) and exits 0 or 1. The whole run is limited to 120 s.
 
-import fs from 'node:fs';
-import os from 'node:os';
-import path from 'node:path';
-import { chromium } from 'playwright-core';
+import { noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
 
 const TOTAL_TIMEOUT_MS = 120_000;
 const base = process.argv[2];
 if (!base) {
   console.log(JSON.stringify({ ok: false, error: 'usage: node tests/browser/viewer.mjs <base-url>' }));
   process.exit(1);
-}
-
-const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
-
-/** Poll `probe()` until `done(value)` holds; throws `what` with the last value on timeout. */
-async function waitFor(what, probe, done, timeoutMs) {
-  const end = Date.now() + timeoutMs;
-  let last;
-  for (;;) {
-    last = await probe();
-    if (done(last)) return last;
-    if (Date.now() > end) throw new Error(`timed out waiting for ${what}; last: ${JSON.stringify(last)}`);
-    await sleep(250);
-  }
 }
 
 // What a page says about itself (window.nephele), in one round trip.
@@ -76,19 +59,6 @@ const meanAbsDiff = (page, a, b) => page.evaluate(([a, b]) => {
   }
   return sum / ((A.data.length / 4) * 3);
 }, [a, b]);
-
-function noErrors(name, snap, pageErrors) {
-  if (pageErrors.length) throw new Error(`${name}: uncaught page error: ${pageErrors[0]}`);
-  if (snap.errors && snap.errors.length) throw new Error(`${name}: page reported errors: ${JSON.stringify(snap.errors)}`);
-}
-
-async function openPage(context, url) {
-  const page = await context.newPage();
-  const pageErrors = [];
-  page.on('pageerror', (err) => pageErrors.push(String(err && err.message ? err.message : err)));
-  await page.goto(url, { waitUntil: 'load' });
-  return { page, pageErrors };
-}
 
 async function run(context) {
   const result = { ok: true };
@@ -135,48 +105,4 @@ async function run(context) {
   return result;
 }
 
-async function main() {
-  const userDataDir = fs.mkdtempSync(path.join(os.tmpdir(), 'nephele-chromium-'));
-  let context = null;
-  let timer = null;
-  try {
-    const timeout = new Promise((_, reject) => {
-      timer = setTimeout(() => reject(new Error(`whole run exceeded ${TOTAL_TIMEOUT_MS / 1000} s`)), TOTAL_TIMEOUT_MS);
-    });
-    const work = (async () => {
-      context = await chromium.launchPersistentContext(userDataDir, {
-        executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-        headless: true,
-        viewport: { width: 1024, height: 768 },
-        args: [
-          '--no-sandbox',
-          '--use-fake-ui-for-media-stream',
-          '--use-fake-device-for-media-stream',
-          '--allow-loopback-in-peer-connection',
-          '--disable-features=WebRtcHideLocalIpsWithMdns',
-          '--disable-background-networking',
-          '--disable-component-update',
-          '--disable-sync',
-          '--no-first-run',
-        ],
-      });
-      return run(context);
-    })();
-    const result = await Promise.race([work, timeout]);
-    console.log(JSON.stringify(result));
-    process.exitCode = 0;
-  } catch (err) {
-    // Playwright's messages carry a call log with terminal colours: keep the first line.
-    const text = String(err && err.message ? err.message : err).replace(/\u001b\[[0-9;]*m/g, '').split('\n')[0];
-    console.log(JSON.stringify({ ok: false, error: text }));
-    process.exitCode = 1;
-  } finally {
-    clearTimeout(timer);
-    if (context) await Promise.race([context.close().catch(() => {}), sleep(10_000)]);
-    fs.rmSync(userDataDir, { recursive: true, force: true });
-  }
-  // A launch still in flight when the timeout hit would keep the process alive.
-  process.exit(process.exitCode);
-}
-
-main();
+runInChromium(run, { timeoutMs: TOTAL_TIMEOUT_MS });

@@ -15,10 +15,9 @@
 // or 1. The whole run is limited to 150 s.
 
 import fs from 'node:fs';
-import os from 'node:os';
 import path from 'node:path';
 import { fileURLToPath } from 'node:url';
-import { chromium } from 'playwright-core';
+import { noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
 
 const TOTAL_TIMEOUT_MS = 150_000;
 const HERE = path.dirname(fileURLToPath(import.meta.url));
@@ -27,20 +26,6 @@ const base = process.argv[2];
 if (!base) {
   console.log(JSON.stringify({ ok: false, error: 'usage: node tests/browser/xr.mjs <base-url>' }));
   process.exit(1);
-}
-
-const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
-
-/** Poll `probe()` until `done(value)` holds; throws `what` with the last value on timeout. */
-async function waitFor(what, probe, done, timeoutMs) {
-  const end = Date.now() + timeoutMs;
-  let last;
-  for (;;) {
-    last = await probe();
-    if (done(last)) return last;
-    if (Date.now() > end) throw new Error(`timed out waiting for ${what}; last: ${JSON.stringify(last)}`);
-    await sleep(250);
-  }
 }
 
 // What a page says about itself (window.nephele), in one round trip.
@@ -65,21 +50,7 @@ const snapshot = (page) => page.evaluate(async () => {
   };
 });
 
-function noErrors(name, snap, pageErrors) {
-  if (pageErrors.length) throw new Error(`${name}: uncaught page error: ${pageErrors[0]}`);
-  if (snap.errors && snap.errors.length) throw new Error(`${name}: page reported errors: ${JSON.stringify(snap.errors)}`);
-}
-
 const failed = (s, pageErrors) => (s.errors && s.errors.length > 0) || pageErrors.length > 0;
-
-async function openPage(context, url, initScripts = []) {
-  const page = await context.newPage();
-  const pageErrors = [];
-  page.on('pageerror', (err) => pageErrors.push(String(err && err.message ? err.message : err)));
-  for (const script of initScripts) await page.addInitScript(script);
-  await page.goto(url, { waitUntil: 'load' });
-  return { page, pageErrors };
-}
 
 // The emulated headset, installed before any page script (so before A-Frame looks for WebXR).
 function installHeadset() {
@@ -161,52 +132,19 @@ async function run(context, result) {
   return result;
 }
 
-async function main() {
-  const userDataDir = fs.mkdtempSync(path.join(os.tmpdir(), 'nephele-chromium-'));
-  const result = { ok: false };
-  let context = null;
-  let timer = null;
-  try {
+const result = { ok: false };
+runInChromium(
+  async (context) => {
     if (!fs.existsSync(IWER_UMD)) throw new Error(`${IWER_UMD} is missing: run npm ci in tests/browser`);
-    const timeout = new Promise((_, reject) => {
-      timer = setTimeout(() => reject(new Error(`whole run exceeded ${TOTAL_TIMEOUT_MS / 1000} s`)), TOTAL_TIMEOUT_MS);
-    });
-    const work = (async () => {
-      context = await chromium.launchPersistentContext(userDataDir, {
-        executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-        headless: true,
-        viewport: { width: 1024, height: 768 },
-        args: [
-          '--no-sandbox',
-          '--use-fake-ui-for-media-stream',
-          '--use-fake-device-for-media-stream',
-          '--allow-loopback-in-peer-connection',
-          '--disable-features=WebRtcHideLocalIpsWithMdns',
-          '--disable-background-networking',
-          '--disable-component-update',
-          '--disable-sync',
-          '--no-first-run',
-          '--enable-unsafe-swiftshader', // WebGL without a GPU, for A-Frame
-        ],
-      });
-      return run(context, result);
-    })();
-    await Promise.race([work, timeout]);
-    console.log(JSON.stringify(result));
-    process.exitCode = 0;
-  } catch (err) {
-    // Playwright's messages carry a call log with terminal colours: keep the first line.
-    const text = String(err && err.message ? err.message : err).replace(/\u001b\[[0-9;]*m/g, '').split('\n')[0];
-    const { rgbaB64, poseB64, ...partial } = result; // what was learned before the failure
-    console.log(JSON.stringify({ ...partial, ok: false, error: text }));
-    process.exitCode = 1;
-  } finally {
-    clearTimeout(timer);
-    if (context) await Promise.race([context.close().catch(() => {}), sleep(10_000)]);
-    fs.rmSync(userDataDir, { recursive: true, force: true });
-  }
-  // A launch still in flight when the timeout hit would keep the process alive.
-  process.exit(process.exitCode);
-}
-
-main();
+    return run(context, result);
+  },
+  {
+    timeoutMs: TOTAL_TIMEOUT_MS,
+    extraArgs: ['--enable-unsafe-swiftshader'], // WebGL without a GPU, for A-Frame
+    // What was learned before a failure, without the large payloads.
+    partial: () => {
+      const { rgbaB64, poseB64, ...rest } = result;
+      return rest;
+    },
+  },
+);

@@ -18,12 +18,9 @@ use crate::{
     client::{ClientOptions, replay},
     master::{
         MasterConfig,
-        compositor::ComposeChoice,
-        encoder::DEFAULT_BITS_PER_PIXEL,
         core::{CoreConfig, scheduler::RenderScale},
     },
     web,
-    wire::media::RtcConfig,
 };
 
 #[derive(clap::Subcommand)]
@@ -193,16 +190,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
     for (label, scale) in &scales {
         for &(width, height) in &sizes {
             eprintln!("streaming {} at {width}x{height}, render scale {label} ...", trace.name);
-            let cfg = MasterConfig {
-                name: "bench".into(),
-                token: None,
-                rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
-                core: CoreConfig { render_scale: *scale, ..Default::default() },
-                workers: 1,
-                compose: ComposeChoice::Cpu,
-        bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
-        nats: None,
-            };
+            let cfg = MasterConfig::loopback("bench", CoreConfig { render_scale: *scale, ..Default::default() });
             let catalog = Arc::clone(&catalog);
             let report = rt.block_on(async {
                 let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;

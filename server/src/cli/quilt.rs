@@ -27,11 +27,8 @@ use crate::{
     },
     master::{
         MasterConfig,
-        compositor::ComposeChoice,
         core::{CoreConfig, scheduler::RenderScale},
-        encoder::DEFAULT_BITS_PER_PIXEL,
     },
-    wire::media::RtcConfig,
 };
 
 #[derive(clap::Args)]
@@ -213,16 +210,7 @@ fn stream_stereo(args: &QuiltBenchArgs) -> Result<StereoRow> {
     trace.poses.truncate(args.stereo_poses);
     let rt = tokio::runtime::Runtime::new()?;
     let run = |mode: Mode, baseline: Option<f32>| -> Result<replay::ReplayReport> {
-        let cfg = MasterConfig {
-            name: "bench".into(),
-            token: None,
-            rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
-            core: CoreConfig { render_scale: RenderScale::Fixed(1.0), ..Default::default() },
-            workers: 1,
-            compose: ComposeChoice::Cpu,
-            bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
-            nats: None,
-        };
+        let cfg = MasterConfig::loopback("bench", CoreConfig { render_scale: RenderScale::Fixed(1.0), ..Default::default() });
         let catalog = Arc::clone(&catalog);
         let trace = &trace;
         rt.block_on(async move {

@@ -28,12 +28,9 @@ use crate::{
     },
     master::{
         MasterConfig,
-        compositor::ComposeChoice,
-        encoder::DEFAULT_BITS_PER_PIXEL,
         core::{Admission, CoreConfig, scheduler::RenderScale},
     },
     web,
-    wire::media::RtcConfig,
 };
 
 /// A user counts as held when it gets at least this share of its target FPS.
@@ -221,16 +218,7 @@ async fn session_run(
     lockstep: bool,
 ) -> Result<Vec<ReplayReport>> {
     let start_at = lockstep.then(|| std::time::Instant::now() + Duration::from_secs(4));
-    let cfg = MasterConfig {
-        name: "bench".into(),
-        token: None,
-        rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
-        core: CoreConfig { capacity: phases.len().max(1) as u32, render_scale: scale, batching, admission: Admission::Open, ..Default::default() },
-        workers: 1,
-        compose: ComposeChoice::Cpu,
-        bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
-        nats: None,
-    };
+    let cfg = MasterConfig::loopback("bench", CoreConfig { capacity: phases.len().max(1) as u32, render_scale: scale, batching, admission: Admission::Open, ..Default::default() });
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
     let mut tasks = Vec::new();
@@ -267,16 +255,7 @@ async fn overload_run(
     height: u32,
     fps: u32,
 ) -> Result<(Vec<ReplayReport>, Vec<String>)> {
-    let cfg = MasterConfig {
-        name: "bench".into(),
-        token: None,
-        rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
-        core: CoreConfig { capacity: offered as u32, render_scale: scale, batching: true, admission: Admission::Load, ..Default::default() },
-        workers: 1,
-        compose: ComposeChoice::Cpu,
-        bits_per_pixel: DEFAULT_BITS_PER_PIXEL,
-        nats: None,
-    };
+    let cfg = MasterConfig::loopback("bench", CoreConfig { capacity: offered as u32, render_scale: scale, batching: true, admission: Admission::Load, ..Default::default() });
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
     let mut tasks = Vec::new();

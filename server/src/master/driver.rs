@@ -66,6 +66,23 @@ pub struct MasterConfig {
     pub nats: Option<NatsSettings>,
 }
 
+impl MasterConfig {
+    /// A master on this machine for benchmarks and tests: loopback ICE only, one in-process
+    /// render worker, CPU composition, the default bit rate.
+    pub fn loopback(name: &str, core: CoreConfig) -> Self {
+        Self {
+            name: name.into(),
+            token: None,
+            rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
+            core,
+            workers: 1,
+            compose: ComposeChoice::Cpu,
+            bits_per_pixel: super::encoder::DEFAULT_BITS_PER_PIXEL,
+            nats: None,
+        }
+    }
+}
+
 /// Where the NATS farm is and how to log in.
 #[derive(Debug, Clone)]
 pub struct NatsSettings {
