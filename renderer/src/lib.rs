@@ -27,4 +27,4 @@ mod test_util;
 pub use asset::{Asset, AssetError};
 pub use camera::{Instance, Intrinsics, PoseError, View};
 pub use model::RenderSettings;
-pub use render::{Backend, CpuBackend, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest};
+pub use render::{Backend, CancelFlag, CpuBackend, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest};

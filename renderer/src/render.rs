@@ -2,7 +2,14 @@
 //! each with the asset's instance transform and a background colour) in, one RGBA8 + depth
 //! frame per view out, with the time spent marching and shading.
 
-use std::{path::Path, sync::Arc, time::Instant};
+use std::{
+    path::Path,
+    sync::{
+        Arc,
+        atomic::{AtomicBool, Ordering},
+    },
+    time::Instant,
+};
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -54,6 +61,26 @@ pub enum RenderError {
     Gpu(String),
     #[error("cannot write {path}: {message}")]
     Output { path: String, message: String },
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Asks a running render to stop at its next safe point: between rays on the CPU, between
+/// dispatch chunks on the GPU. Clones share one flag.
+#[derive(Debug, Clone, Default)]
+pub struct CancelFlag(Arc<AtomicBool>);
+
+impl CancelFlag {
+    pub fn cancel(&self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+    pub fn is_cancelled(&self) -> bool {
+        self.0.load(Ordering::Relaxed)
+    }
+    /// `Err(Cancelled)` once cancelled.
+    pub fn check(&self) -> Result<(), RenderError> {
+        if self.is_cancelled() { Err(RenderError::Cancelled) } else { Ok(()) }
+    }
 }
 
 /// Where the time of one batch went.
@@ -77,7 +104,12 @@ pub struct RenderOutput {
 /// An asset made ready for one backend (uploaded, for the GPU).
 pub trait PreparedAsset: Send + Sync {
     fn asset(&self) -> &Arc<Asset>;
-    fn render(&self, views: &[ViewRequest], settings: &RenderSettings) -> Result<RenderOutput, RenderError>;
+    /// Renders every view in one pass; stops with [`RenderError::Cancelled`] at the next safe
+    /// point once `cancel` is set.
+    fn render_cancellable(&self, views: &[ViewRequest], settings: &RenderSettings, cancel: &CancelFlag) -> Result<RenderOutput, RenderError>;
+    fn render(&self, views: &[ViewRequest], settings: &RenderSettings) -> Result<RenderOutput, RenderError> {
+        self.render_cancellable(views, settings, &CancelFlag::default())
+    }
 }
 
 pub trait Backend: Send + Sync {
@@ -173,7 +205,7 @@ impl PreparedAsset for CpuPrepared {
         &self.0
     }
 
-    fn render(&self, views: &[ViewRequest], settings: &RenderSettings) -> Result<RenderOutput, RenderError> {
+    fn render_cancellable(&self, views: &[ViewRequest], settings: &RenderSettings, cancel: &CancelFlag) -> Result<RenderOutput, RenderError> {
         check_request(views, settings)?;
         let asset = &*self.0;
         let step = asset.march.step * settings.step_scale;
@@ -199,14 +231,20 @@ impl PreparedAsset for CpuPrepared {
             let w = f.intrinsics.width;
             (v, f.ray(p % w, p / w))
         };
-        // Pass 1: march every ray of every view.
+        // Pass 1: march every ray of every view (a cancelled render stops within one ray per
+        // thread: the collect short-circuits on the first `None`).
         let marched: Vec<model::MarchHit> = (0..total)
             .into_par_iter()
             .map(|i| {
+                if cancel.is_cancelled() {
+                    return None;
+                }
                 let (_, (o, d)) = ray(i);
-                model::march(&asset.density, o, d, step, settings)
+                Some(model::march(&asset.density, o, d, step, settings))
             })
-            .collect();
+            .collect::<Option<_>>()
+            .ok_or(RenderError::Cancelled)?;
+        cancel.check()?;
         let march_done = Instant::now();
         // Pass 2: shade the hits; misses get the background and infinite depth.
         let shaded: Vec<([u8; 4], f32)> = marched
@@ -217,12 +255,16 @@ impl PreparedAsset for CpuPrepared {
                 let (req, f) = (&views[v], &frames_setup[v]);
                 if m.alpha_c < alpha_min {
                     let bg = req.background;
-                    return ([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY);
+                    return Some(([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY));
+                }
+                if cancel.is_cancelled() {
+                    return None;
                 }
                 let (rgb, a) = model::shade(asset, &self.1, o + m.t_hit * d, d, m.alpha_c, req.background);
-                ([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale)
+                Some(([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale))
             })
-            .collect();
+            .collect::<Option<_>>()
+            .ok_or(RenderError::Cancelled)?;
         let mut stats = RenderStats {
             rays: total,
             hits: shaded.iter().filter(|s| s.1.is_finite()).count() as u64,

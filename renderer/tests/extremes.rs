@@ -1,6 +1,7 @@
 //! Numerical stability at the extremes of DESIGN §7, on both backends: cameras inside the box,
 //! on its face and 10⁶ units away; axis-parallel rays with exactly zero components; σ = 0 and
-//! σ saturating f16; 1×1 and 8K viewports; NaN/Inf/non-rigid poses and absurd sizes → errors.
+//! σ saturating f16; 1×1 and 8K viewports; NaN/Inf/non-rigid poses and absurd sizes → errors;
+//! a cancelled render stops with `Cancelled` on both backends.
 
 mod common;
 
@@ -8,7 +9,7 @@ use std::sync::Arc;
 
 use glam::{DMat4, DVec3, DVec4};
 use nephele_renderer::{
-    Asset, Backend, CpuBackend, Intrinsics, PoseError, RenderError, RenderOutput, RenderSettings, View, ViewRequest,
+    Asset, Backend, CancelFlag, CpuBackend, Intrinsics, PoseError, RenderError, RenderOutput, RenderSettings, View, ViewRequest,
     procedural::{self, ProceduralConfig, Scene},
 };
 
@@ -156,4 +157,38 @@ fn bad_poses_and_sizes_are_clear_errors() {
     }
     assert!(matches!(good.validate(), Ok(())));
     let _ = PoseError::NonFinite;
+}
+
+#[test]
+fn a_cancelled_render_stops_with_cancelled() {
+    let a = common::fixture();
+    // 8K UHD from close by: seconds of work on the CPU, several chunks on the GPU.
+    let big = [ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 35.0, 25.0, Intrinsics::from_fov_x(7680, 4320, 1.2)))];
+    let settings = RenderSettings::default();
+    let mut backends: Vec<&dyn Backend> = vec![&CpuBackend];
+    if let Some(g) = common::gpu() {
+        backends.push(g);
+    }
+    for b in backends {
+        let p = b.prepare(a.clone()).unwrap();
+        // Cancelled before it starts: nothing is rendered.
+        let before = CancelFlag::default();
+        before.cancel();
+        assert!(matches!(p.render_cancellable(&big, &settings, &before), Err(RenderError::Cancelled)), "{}", b.name());
+        // Cancelled while it runs: it stops at the next safe point instead of finishing.
+        let during = CancelFlag::default();
+        let stopper = {
+            let flag = during.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(std::time::Duration::from_millis(30));
+                flag.cancel();
+            })
+        };
+        let out = p.render_cancellable(&big, &settings, &during);
+        stopper.join().unwrap();
+        assert!(matches!(out, Err(RenderError::Cancelled)), "{}: a render cancelled after 30 ms finished anyway", b.name());
+        // A flag nobody sets changes nothing.
+        let small = [ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 35.0, 25.0, k(32, 24)))];
+        assert_eq!(p.render_cancellable(&small, &settings, &CancelFlag::default()).unwrap().frames, p.render(&small, &settings).unwrap().frames);
+    }
 }

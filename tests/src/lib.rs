@@ -185,3 +185,10 @@ pub fn spawn_worker(nats: &NatsServer, id: &str, farm: &str, scenes: &[String]) 
     std::thread::spawn(move || std::io::copy(&mut out, &mut std::io::sink()));
     Reap(child)
 }
+
+/// Logs of the code under test on stderr when `RUST_LOG` is set (`--nocapture` shows them).
+pub fn log_from_env() {
+    if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_default_env() {
+        let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    }
+}

@@ -20,7 +20,7 @@ use crate::{
     camera::RayFrame,
     cubes::{CubeStorage, TextureCubes, atlas_bricks_per_axis},
     model::RenderSettings,
-    render::{Backend, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest, check_request},
+    render::{Backend, CancelFlag, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest, check_request},
 };
 
 /// WGSL sources; each kernel is the common prelude plus its own file.
@@ -435,7 +435,7 @@ impl PreparedAsset for GpuPrepared {
         &self.asset
     }
 
-    fn render(&self, views: &[ViewRequest], settings: &RenderSettings) -> Result<RenderOutput, RenderError> {
+    fn render_cancellable(&self, views: &[ViewRequest], settings: &RenderSettings, cancel: &CancelFlag) -> Result<RenderOutput, RenderError> {
         check_request(views, settings)?;
         let ctx = &*self.ctx;
         let dev = &ctx.device;
@@ -479,6 +479,7 @@ impl PreparedAsset for GpuPrepared {
         let mut stats = RenderStats { rays: total, ..Default::default() };
         let mut chunk_start = 0u32;
         while (chunk_start as u64) < total {
+            cancel.check()?;
             let chunk_len = ((total - chunk_start as u64) as u32).min(CHUNK_PIXELS);
             let params = Params {
                 step: a.march.step * settings.step_scale,

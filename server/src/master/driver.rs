@@ -97,10 +97,10 @@ enum Farm {
 }
 
 impl Farm {
-    fn submit(&self, worker: &WorkerId, task: RenderTask) -> Result<(), RenderTask> {
+    fn submit(&self, worker: &WorkerId, task: RenderTask) -> Result<(), (RenderTask, String)> {
         match self {
             Self::Local(w) => w.submit(worker, task),
-            Self::Nats(n) => n.submit(worker.clone(), task),
+            Self::Nats(n) => n.submit(worker.clone(), task).map_err(|t| (t, format!("worker {} is gone", worker.0))),
         }
     }
 
@@ -315,8 +315,8 @@ fn execute(
         }
         Output::ToViewer { session, msg } => command(sessions, &session, PeerCommand::Text(msg.to_json())),
         Output::Render { worker, task } => {
-            if let Err(task) = workers.submit(&worker, task) {
-                let result = TaskResult::failed(task.id, format!("worker {} is gone", worker.0));
+            if let Err((task, why)) = workers.submit(&worker, task) {
+                let result = TaskResult::failed(task.id, why);
                 inputs.push(Input::RenderDone(result));
             }
         }

@@ -28,7 +28,7 @@ use crate::worker::{
     NatsAuth, connect,
     protocol::{
         CHUNK, Farm, KIND, RENDER_MS, SERVICE_NAME, TaskMessage, VIEWS, WORKER, WorkerAnnouncement, farm_subject, frames_from, parse_chunk, parse_views,
-        worker_subject,
+        cancel_subject, worker_subject,
     },
 };
 
@@ -148,8 +148,14 @@ impl FarmLoop {
                 cmd = commands.recv() => match cmd {
                     None => return,
                     Some(Command::Submit { worker, task }) => self.submit(&worker, task).await,
-                    Some(Command::Cancel(id)) => if self.pending.remove(&id).is_some() {
-                        (self.report)(WorkerEvent::Done(TaskResult::failed(id, "cancelled: every user of the task left")));
+                    Some(Command::Cancel(id)) => if let Some(p) = self.pending.remove(&id) {
+                        if let Some(worker) = &p.accepted_by {
+                            let reply = format!("{}.{}.{}", self.prefix, id.0, p.attempt);
+                            if let Err(e) = self.client.publish(cancel_subject(worker), reply.into()).await {
+                                tracing::debug!(task = %id, "telling {worker} to cancel: {e}");
+                            }
+                        }
+                        (self.report)(WorkerEvent::Done(TaskResult::failed(id, super::core::task::CANCELLED)));
                     },
                 },
                 msg = replies.next() => match msg {

@@ -3,18 +3,20 @@
 //! dispatch on the GPU), and report the frames. Each worker first renders a calibration view
 //! of every scene so the scheduler starts from a measured throughput (rays per second) and
 //! refines it online. A panicking render ends that task with an error, never the worker; a
-//! task whose users all left is skipped if it has not started.
+//! task whose users all left is skipped if it has not started and stopped at the renderer's
+//! next safe point if it has. Each worker queues at most
+//! [`nephele_limits::MAX_QUEUED_TASKS_PER_WORKER`] tasks: the pool's memory has a bound.
 
 use std::{
-    collections::HashSet,
+    collections::HashMap,
     panic::AssertUnwindSafe,
     sync::{Arc, Mutex, mpsc},
     time::Instant,
 };
 
-use nephele_renderer::{Intrinsics, View, ViewRequest};
+use nephele_renderer::{CancelFlag, Intrinsics, RenderError, View, ViewRequest};
 
-use super::core::task::{RenderTask, TaskClass, TaskId, TaskResult, WorkerId};
+use super::core::task::{CANCELLED, RenderTask, TaskClass, TaskId, TaskResult, WorkerId};
 use crate::catalog::Catalog;
 
 /// What a worker tells the driver.
@@ -30,36 +32,54 @@ const CALIBRATION_EDGE: u32 = 256;
 
 /// A pool of one or more render threads sharing the catalogue.
 pub struct LocalWorkers {
-    senders: Vec<(WorkerId, mpsc::Sender<RenderTask>)>,
-    cancelled: Arc<Mutex<HashSet<TaskId>>>,
+    senders: Vec<(WorkerId, mpsc::SyncSender<RenderTask>)>,
+    /// A flag per queued or running task; the worker removes it when the task is done.
+    flags: Arc<Mutex<HashMap<TaskId, CancelFlag>>>,
 }
 
 impl LocalWorkers {
     /// Starts `count` workers named `local-1`, `local-2`, …; events go to `report`.
     pub fn spawn(catalog: Arc<Catalog>, count: usize, report: impl Fn(WorkerEvent) + Send + Clone + 'static) -> std::io::Result<Self> {
-        let cancelled = Arc::new(Mutex::new(HashSet::new()));
+        let flags = Arc::new(Mutex::new(HashMap::new()));
         let mut senders = Vec::new();
         for i in 1..=count.max(1) {
             let id = WorkerId(format!("local-{i}"));
-            let (tx, rx) = mpsc::channel::<RenderTask>();
-            let (catalog, report, cancelled, name) = (Arc::clone(&catalog), report.clone(), Arc::clone(&cancelled), id.clone());
-            std::thread::Builder::new().name(id.0.clone()).spawn(move || worker_loop(name, &catalog, rx, &report, &cancelled))?;
+            let (tx, rx) = mpsc::sync_channel::<RenderTask>(nephele_limits::MAX_QUEUED_TASKS_PER_WORKER);
+            let (catalog, report, flags, name) = (Arc::clone(&catalog), report.clone(), Arc::clone(&flags), id.clone());
+            std::thread::Builder::new().name(id.0.clone()).spawn(move || worker_loop(name, &catalog, rx, &report, &flags))?;
             senders.push((id, tx));
         }
-        Ok(Self { senders, cancelled })
+        Ok(Self { senders, flags })
     }
 
-    /// Queues a task on `worker`; returns it back if that worker is gone.
-    pub fn submit(&self, worker: &WorkerId, task: RenderTask) -> Result<(), RenderTask> {
-        match self.senders.iter().find(|(id, _)| id == worker) {
-            Some((_, tx)) => tx.send(task).map_err(|e| e.0),
-            None => Err(task),
+    /// Queues a task on `worker`; gives it back with the reason if that worker is gone or
+    /// its queue is full.
+    pub fn submit(&self, worker: &WorkerId, task: RenderTask) -> Result<(), (RenderTask, String)> {
+        let Some((_, tx)) = self.senders.iter().find(|(id, _)| id == worker) else {
+            return Err((task, format!("worker {} is gone", worker.0)));
+        };
+        let id = task.id;
+        self.flags().insert(id, CancelFlag::default());
+        tx.try_send(task).map_err(|e| {
+            self.flags().remove(&id);
+            match e {
+                mpsc::TrySendError::Full(t) => {
+                    (t, format!("worker {} already has {} tasks queued", worker.0, nephele_limits::MAX_QUEUED_TASKS_PER_WORKER))
+                }
+                mpsc::TrySendError::Disconnected(t) => (t, format!("worker {} is gone", worker.0)),
+            }
+        })
+    }
+
+    /// Stops `task`: skipped if it has not started, stopped at the next safe point if it has.
+    pub fn cancel(&self, task: TaskId) {
+        if let Some(flag) = self.flags().get(&task) {
+            flag.cancel();
         }
     }
 
-    /// Skip `task` if it has not started.
-    pub fn cancel(&self, task: TaskId) {
-        self.cancelled.lock().expect("cancel set").insert(task);
+    fn flags(&self) -> std::sync::MutexGuard<'_, HashMap<TaskId, CancelFlag>> {
+        self.flags.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -68,30 +88,34 @@ fn worker_loop(
     catalog: &Catalog,
     tasks: mpsc::Receiver<RenderTask>,
     report: &impl Fn(WorkerEvent),
-    cancelled: &Mutex<HashSet<TaskId>>,
+    flags: &Mutex<HashMap<TaskId, CancelFlag>>,
 ) {
     let rays_per_s = calibrate(catalog);
     tracing::info!(worker = %id.0, backend = %catalog.backend_name, rays_per_s, "render worker up");
     report(WorkerEvent::Up { worker: id.clone(), rays_per_s, slots: 1, farm: None, assets: None });
+    let lock = || flags.lock().unwrap_or_else(|e| e.into_inner());
     for task in tasks {
-        if cancelled.lock().expect("cancel set").remove(&task.id) {
-            report(WorkerEvent::Done(TaskResult::failed(task.id, "cancelled: every user of the task left")));
-            continue;
-        }
-        report(WorkerEvent::Done(render_task(catalog, &task)));
+        let cancel = lock().get(&task.id).cloned().unwrap_or_default();
+        let result = render_task(catalog, &task, &cancel);
+        lock().remove(&task.id);
+        report(WorkerEvent::Done(result));
     }
 }
 
-/// Renders a whole task in one call of the backend.
-pub fn render_task(catalog: &Catalog, task: &RenderTask) -> TaskResult {
+/// Renders a whole task in one call of the backend, unless `cancel` is set before or during.
+pub fn render_task(catalog: &Catalog, task: &RenderTask, cancel: &CancelFlag) -> TaskResult {
+    if cancel.is_cancelled() {
+        return TaskResult::failed(task.id, CANCELLED);
+    }
     let _span = tracing::debug_span!("render_task", task = %task.id, asset = %task.asset, views = task.views.len(), class = ?task.class).entered();
     let started = Instant::now();
     let frames = match catalog.assets.get(&task.asset) {
         None => Err(format!("this worker has no asset {:?}", task.asset)),
         Some(asset) => {
             let requests = task.requests();
-            match std::panic::catch_unwind(AssertUnwindSafe(|| asset.prepared.render(&requests, &catalog.settings))) {
+            match std::panic::catch_unwind(AssertUnwindSafe(|| asset.prepared.render_cancellable(&requests, &catalog.settings, cancel))) {
                 Ok(Ok(out)) => Ok(out.frames.into_iter().map(Arc::new).collect()),
+                Ok(Err(RenderError::Cancelled)) => Err(CANCELLED.into()),
                 Ok(Err(e)) => Err(e.to_string()),
                 Err(_) => Err("the renderer panicked on this task".into()),
             }

@@ -4,19 +4,25 @@
 //! tasks masters send it ([`protocol`]): from its farm's queue group per asset, and on its
 //! own subject. While rendering it says `working` every 40 ms, so a master notices a dead
 //! or stopped worker within a few hundred milliseconds and re-issues the task elsewhere.
+//! A task its master cancels (every user left) stops at the renderer's next safe point.
 
 pub mod protocol;
 
-use std::{sync::Arc, time::Instant};
+use std::{
+    collections::HashMap,
+    sync::{Arc, Mutex},
+    time::Instant,
+};
 
 use anyhow::{Context, Result, bail};
 use async_nats::{HeaderMap, service::ServiceExt};
 use futures_util::StreamExt;
+use nephele_renderer::CancelFlag;
 use tokio::sync::Semaphore;
 
 use self::protocol::{
     ATTEMPT, CHUNK, Farm, KEEPALIVE, KIND, MAX_TASK_BYTES, RENDER_MS, SERVICE_NAME, SERVICE_VERSION, TASK, TaskMessage, VIEWS, WORKER, WorkerAnnouncement,
-    farm_subject, result_chunks, task_header, worker_subject,
+    cancel_subject, farm_subject, result_chunks, task_header, worker_subject,
 };
 use crate::{
     catalog::Catalog,
@@ -113,18 +119,34 @@ pub async fn run(cfg: WorkerConfig, catalog: Arc<Catalog>) -> Result<()> {
         catalog.names().join(", "),
         rays_per_s as u64
     );
+    // Running tasks by reply subject (unique per master and attempt), for cancels.
+    let running: Running = Arc::default();
+    let mut cancels = client.subscribe(cancel_subject(&cfg.id)).await.map_err(|e| anyhow::anyhow!("subscribing to cancels: {e}"))?;
+    let cancelled = Arc::clone(&running);
+    tokio::spawn(async move {
+        while let Some(msg) = cancels.next().await {
+            let reply = String::from_utf8_lossy(&msg.payload);
+            if let Some(flag) = cancelled.lock().unwrap_or_else(|e| e.into_inner()).get(reply.as_ref()) {
+                tracing::debug!(task = %reply, "cancelled by its master");
+                flag.cancel();
+            }
+        }
+    });
     let slots = Arc::new(Semaphore::new(cfg.farm.slots() as usize));
     let mut requests = futures_util::stream::select_all(endpoints);
     while let Some(request) = requests.next().await {
         let permit = Arc::clone(&slots).acquire_owned().await?;
-        let (client, catalog, id) = (client.clone(), Arc::clone(&catalog), cfg.id.clone());
+        let (client, catalog, id, running) = (client.clone(), Arc::clone(&catalog), cfg.id.clone(), Arc::clone(&running));
         tokio::spawn(async move {
-            handle(client, catalog, &id, request.message).await;
+            handle(client, catalog, &id, request.message, &running).await;
             drop(permit);
         });
     }
     bail!("NATS closed the worker's subscriptions")
 }
+
+/// Cancel flags of the tasks being rendered, by reply subject.
+type Running = Arc<Mutex<HashMap<String, CancelFlag>>>;
 
 /// Publishes replies for one task on its reply subject.
 #[derive(Clone)]
@@ -149,7 +171,7 @@ impl Replier {
 }
 
 /// One task: accept, keep saying `working`, render, send the result (or an error).
-async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, message: async_nats::Message) {
+async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, message: async_nats::Message, running: &Running) {
     let Some(reply) = message.reply.clone() else { return };
     let replier = Replier { client: client.clone(), reply, worker: id.to_owned() };
     let parsed = if message.payload.len() > MAX_TASK_BYTES {
@@ -185,7 +207,11 @@ async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, mes
     let started = Instant::now();
     let task = msg.task;
     let with_depth = task.needs_depth;
-    let result = tokio::task::spawn_blocking(move || render_task(&catalog, &task)).await;
+    let cancel = CancelFlag::default();
+    let key = replier.reply.to_string();
+    running.lock().unwrap_or_else(|e| e.into_inner()).insert(key.clone(), cancel.clone());
+    let result = tokio::task::spawn_blocking(move || render_task(&catalog, &task, &cancel)).await;
+    running.lock().unwrap_or_else(|e| e.into_inner()).remove(&key);
     keepalive.abort();
     match result.map_err(|e| e.to_string()).and_then(|r| r.frames.map(|f| (f, r.render_ms))) {
         Ok((frames, render_ms)) => {

@@ -22,6 +22,9 @@
 //!   other views are sent whole. All of it is cut into chunks of at most
 //!   [`CHUNK_BYTES`]: half of NATS's default 1 MiB payload limit, leaving room for headers
 //!   and for servers configured lower.
+//! - **Cancel**: when every user of a task has left, the master publishes the task's reply
+//!   subject to [`cancel_subject`] of the worker that accepted it; the worker stops that
+//!   render at its next safe point and answers nothing more.
 
 use std::{sync::Arc, time::Duration};
 
@@ -85,6 +88,12 @@ pub fn farm_subject(farm: Farm, asset: &str) -> String {
 /// A worker's own subject.
 pub fn worker_subject(id: &str) -> String {
     format!("nephele.render.worker.{id}")
+}
+
+/// Where a worker hears that a task it accepted is no longer wanted (payload: the task's
+/// reply subject).
+pub fn cancel_subject(id: &str) -> String {
+    format!("nephele.cancel.{id}")
 }
 
 /// What a worker announces in its service metadata.

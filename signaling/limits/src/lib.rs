@@ -154,3 +154,7 @@ mod tests {
         }
     }
 }
+
+/// Render tasks queued on one in-process render worker (beyond the one it is rendering): the
+/// core hands a worker a task only when it has a free slot, so this is a backstop.
+pub const MAX_QUEUED_TASKS_PER_WORKER: usize = 2;

@@ -40,7 +40,7 @@ use self::{
     history::{History, RequestKey},
     scheduler::{Candidate, Demand, Ema, RenderScale, STARVED_GRACE, UserClock, fair_scale, fits, latency_scale, round_size, sort_candidates},
     session::{FrameJob, Session},
-    task::{RenderTask, TaskClass, TaskId, TaskResult, TaskView, ViewTag, WorkerId},
+    task::{CANCELLED, RenderTask, TaskClass, TaskId, TaskResult, TaskView, ViewTag, WorkerId},
 };
 use super::metrics::{MasterMetrics, SessionLabel};
 use crate::wire::{FrameLayout, FrameTimes, QuiltInfo, ToViewer, Viewport, media::background_of};
@@ -278,6 +278,8 @@ struct TaskInFlight {
     worker: WorkerId,
     /// Per view: its history key and who asked.
     views: Vec<(RequestKey, Vec<ViewTag>)>,
+    /// Primary rays of each view.
+    view_rays: Vec<u64>,
     rays: u64,
 }
 
@@ -643,11 +645,23 @@ impl MasterCore {
             (task.views, *keys) = keep.into_iter().unzip();
         }
         self.queue.retain(|(t, _)| !t.views.is_empty());
-        // Running tasks with nobody left are cancelled where the worker can still skip them.
+        // Running tasks stop at the worker's next safe point when at least half of their rays
+        // were for users who are gone (the work saved is at least the work redone): the
+        // other users' frames of such a task are dropped quietly and made from their next
+        // pose.
         let orphans: Vec<(TaskId, WorkerId)> = self
             .in_flight
             .iter()
-            .filter(|(_, t)| t.views.iter().flat_map(|(_, tags)| tags).all(|tag| tag.session == session || !self.users.contains_key(&tag.session)))
+            .filter(|(_, t)| {
+                let abandoned: u64 = t
+                    .views
+                    .iter()
+                    .zip(&t.view_rays)
+                    .filter(|((_, tags), _)| tags.iter().all(|tag| tag.session == session || !self.users.contains_key(&tag.session)))
+                    .map(|(_, rays)| rays)
+                    .sum();
+                2 * abandoned >= t.rays.max(1)
+            })
             .map(|(id, t)| (*id, t.worker.clone()))
             .collect();
         for (task, worker) in orphans {
@@ -771,7 +785,7 @@ impl MasterCore {
     fn fail_queued(&mut self, task: RenderTask, keys: Vec<RequestKey>, message: &str, now: Instant) {
         let id = task.id;
         let views = keys.into_iter().zip(task.views.iter().map(|v| v.tags.clone())).collect();
-        self.in_flight.insert(id, TaskInFlight { worker: WorkerId(String::new()), views, rays: task.rays });
+        self.in_flight.insert(id, TaskInFlight { worker: WorkerId(String::new()), views, view_rays: view_rays(&task), rays: task.rays });
         self.render_done(TaskResult::failed(id, message), now);
     }
 
@@ -789,7 +803,7 @@ impl MasterCore {
         self.metrics.batch_views.observe(task.views.len() as f64);
         self.metrics.batch_users.observe(task.users() as f64);
         let views = keys.into_iter().zip(task.views.iter().map(|v| v.tags.clone())).collect();
-        self.in_flight.insert(task.id, TaskInFlight { worker: worker.clone(), views, rays: task.rays });
+        self.in_flight.insert(task.id, TaskInFlight { worker: worker.clone(), views, view_rays: view_rays(&task), rays: task.rays });
         tracing::trace!(task = %task.id, views = task.views.len(), class = ?task.class, "dispatch");
         self.outputs.push_back(Output::Render { worker, task });
     }
@@ -1010,6 +1024,10 @@ impl MasterCore {
                         }
                         self.finish_if_complete(&tag.session, tag.frame);
                     }
+                    None if frames.as_ref().is_err_and(|e| e == CANCELLED) => {
+                        u.frames.remove(at);
+                        u.session.frame_failed(tag.frame);
+                    }
                     None => {
                         u.frames.remove(at);
                         u.session.frame_failed(tag.frame);
@@ -1065,3 +1083,7 @@ impl MasterCore {
 
 #[cfg(test)]
 mod tests;
+
+fn view_rays(task: &RenderTask) -> Vec<u64> {
+    task.views.iter().map(|v| v.view.intrinsics.pixel_count()).collect()
+}

@@ -96,6 +96,9 @@ impl RenderTask {
     }
 }
 
+/// Why a cancelled task has no frames (workers answer with exactly this).
+pub const CANCELLED: &str = "cancelled: the users of most of the task left";
+
 /// What a worker reports for a task.
 #[derive(Debug, Clone)]
 pub struct TaskResult {

@@ -185,7 +185,13 @@ impl Sim {
                     self.routes.push((worker, task.id));
                     self.tasks.push(task);
                 }
-                Output::Cancel { task, .. } => self.cancelled.push(task),
+                Output::Cancel { task, .. } => {
+                    // The simulated worker stops it at once.
+                    self.cancelled.push(task);
+                    if let Some((_, r)) = self.renders.iter_mut().find(|(_, r)| r.id == task) {
+                        r.frames = Err(task::CANCELLED.into());
+                    }
+                }
                 Output::Encode(job) => {
                     self.encodes.push((self.now + Duration::from_millis(ENCODE_MS), job.session.clone(), job.frame));
                     self.encode_jobs.push(job);
@@ -396,6 +402,33 @@ fn a_user_leaving_mid_task_cancels_only_its_own_work() {
     assert!(sim.encode_jobs.iter().filter(|j| j.session == "a").all(|j| j.frame <= 1));
     assert!(sim.fps_between("b", 2000, 4000) > 3.0);
     assert!(sim.out.get("b").is_none_or(|d| d.errors.is_empty()));
+}
+
+#[test]
+fn a_shared_task_is_cancelled_when_most_of_its_rays_leave_and_the_rest_go_on_quietly() {
+    // A slow farm, so tasks are in flight when users leave.
+    let mut sim = Sim::new(fixed(8, true, Admission::Open), 2e6, 0.0);
+    for (s, w, h) in [("small", 160, 120), ("big", 1280, 720), ("tiny", 96, 64)] {
+        assert!(sim.join(s, "lego", w, h, 25));
+    }
+    sim.run_until(1000);
+    let holding = |sim: &Sim, who: &str| -> Vec<TaskId> {
+        sim.tasks.iter().filter(|t| t.views.iter().any(|v| v.tags.iter().any(|tag| tag.session == who))).map(|t| t.id).collect()
+    };
+    // "tiny" is a sliver of the shared task's rays: leaving does not cancel anyone's work.
+    let before = sim.cancelled.len();
+    sim.leave("tiny");
+    assert_eq!(sim.cancelled.len(), before, "a small user leaving cancelled a shared task");
+    sim.run_until(1500);
+    // "big" is most of it: the task in flight stops; "small" loses that frame quietly.
+    let big_tasks = holding(&sim, "big");
+    let last = *big_tasks.last().unwrap();
+    assert!(sim.tasks.iter().any(|t| t.id == last && t.views.iter().any(|v| v.tags.iter().any(|tag| tag.session == "small"))), "not a shared task");
+    sim.leave("big");
+    assert!(sim.cancelled.contains(&last), "{:?} {:?}", sim.cancelled, big_tasks);
+    sim.run_until(4000);
+    assert!(sim.fps_between("small", 2500, 4000) > 20.0, "{}", sim.fps_between("small", 2500, 4000));
+    assert!(sim.out.get("small").is_none_or(|d| d.errors.is_empty()), "{:?}", sim.out["small"].errors);
 }
 
 #[test]

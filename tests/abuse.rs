@@ -1,0 +1,119 @@
+//! Legal messages in hostile patterns, against the real server in this process (signaling +
+//! master + CPU renderer, real WebRTC peers on loopback, real OpenH264): the attacker is
+//! throttled, dropped or cancelled, never the master or a bystander.
+//!
+//! - 4K join → one pose → leave, over and over: the 4K renders stop at the renderer's next
+//!   safe point instead of running on after their sessions left, and a bystander keeps
+//!   streaming.
+
+use std::{
+    sync::{
+        Arc,
+        atomic::{AtomicBool, AtomicUsize, Ordering},
+    },
+    time::{Duration, Instant},
+};
+
+use glam::Mat4;
+use nephele::{
+    client::{ClientOptions, StreamClient, replay::Trace},
+    wire::PoseMessage,
+};
+use nephele_e2e::core_config;
+use nephele_signaling::Mode;
+
+fn client_opts(signal_url: &str, width: u32, height: u32) -> ClientOptions {
+    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, keep_pixels: false, quilt: None }
+}
+
+fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {
+    let trace = Trace::builtin("orbit").unwrap();
+    PoseMessage {
+        seq,
+        t_client_ms: f64::from(seq) * 20.0,
+        world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
+        intrinsics: trace.intrinsics(width, height),
+        world_from_anchor: None,
+    }
+}
+
+/// A client that sends a pose every 20 ms and counts its decoded frames until dropped.
+struct Bystander {
+    frames: Arc<AtomicUsize>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Bystander {
+    async fn start(signal_url: &str) -> Self {
+        let mut client = StreamClient::connect(&client_opts(signal_url, 160, 120)).await.expect("the bystander connects");
+        let frames = Arc::new(AtomicUsize::new(0));
+        let mut rx = std::mem::replace(&mut client.frames, tokio::sync::mpsc::unbounded_channel().1);
+        let count = Arc::clone(&frames);
+        tokio::spawn(async move {
+            while rx.recv().await.is_some() {
+                count.fetch_add(1, Ordering::Relaxed);
+            }
+        });
+        let stop = Arc::new(AtomicBool::new(false));
+        let halt = Arc::clone(&stop);
+        tokio::spawn(async move {
+            let mut seq = 0;
+            while !halt.load(Ordering::Relaxed) {
+                seq += 1;
+                if client.send_pose(&pose(seq, 160, 120)).await.is_err() {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            client.close().await;
+        });
+        Self { frames, stop }
+    }
+
+    fn frames(&self) -> usize {
+        self.frames.load(Ordering::Relaxed)
+    }
+
+    /// Frames per second over the next `window`.
+    async fn fps_over(&self, window: Duration) -> f64 {
+        let (n0, t0) = (self.frames(), Instant::now());
+        tokio::time::sleep(window).await;
+        (self.frames() - n0) as f64 / t0.elapsed().as_secs_f64()
+    }
+}
+
+impl Drop for Bystander {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Found by hand: twenty 3840×2160 join → pose → leave cycles kept ~20 full-size frames
+/// rendering after their slots were freed (2 cores busy for ~22 s, 2.9 GB). Now the core
+/// cancels a task whose users all left and the worker stops it mid-render.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leaving_cancels_the_render_of_a_4k_frame() {
+    nephele_e2e::log_from_env();
+    let (server, _) = nephele_e2e::start_server(core_config(4)).await;
+    let url = server.signal_url();
+    let bystander = Bystander::start(&url).await;
+    let before = bystander.fps_over(Duration::from_secs(2)).await;
+    let cycles = 8;
+    let attack_start = (Instant::now(), bystander.frames());
+    for seq in 1..=cycles {
+        let client = StreamClient::connect(&client_opts(&url, 3840, 2160)).await.expect("the 4K client connects");
+        client.send_pose(&pose(seq, 3840, 2160)).await.unwrap();
+        // Long enough for the task to start rendering, far shorter than the render.
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        client.close().await;
+    }
+    let during = (bystander.frames() - attack_start.1) as f64 / attack_start.0.elapsed().as_secs_f64();
+    let cancelled = server.metrics.tasks_cancelled.get();
+    // Once the last 4K task stops, the bystander is alone again.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let after = bystander.fps_over(Duration::from_secs(2)).await;
+    println!("bystander fps: before {before:.1}, during {cycles} 4K join/pose/leave cycles {during:.1}, after {after:.1}; tasks cancelled {cancelled}");
+    assert!(cancelled >= cycles as u64 / 2, "only {cancelled} of {cycles} abandoned 4K tasks were cancelled");
+    assert!(bystander.frames() > attack_start.1, "the bystander got no frames during the attack");
+    assert!(after >= 0.5 * before, "the bystander did not recover: {after:.1} fps after, {before:.1} before");
+}
