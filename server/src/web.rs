@@ -49,8 +49,9 @@ pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Ca
     signaling.spawn_tick_task();
     let metrics = Arc::new(MasterMetrics::new());
     let app = router(signaling.clone(), Arc::clone(&catalog), Arc::clone(&metrics));
+    let gate = signaling.gate();
     tokio::spawn(async move {
-        if let Err(e) = axum::serve(listener, app.into_make_service_with_connect_info::<std::net::SocketAddr>()).await {
+        if let Err(e) = nephele_signaling::serve_limited(listener, app, gate).await {
             tracing::error!("HTTP server failed: {e}");
         }
     });

@@ -17,6 +17,7 @@
 //! latest join).
 
 use std::collections::BTreeMap;
+use std::net::IpAddr;
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
@@ -54,6 +55,9 @@ pub struct HubConfig {
     /// …and in one burst. Beyond that the client gets `rate_limited` and is disconnected,
     /// before its relayed messages can fill its master's queue.
     pub client_message_burst: f64,
+    /// Connection limits (the hub applies `max_pending_joins_per_address`; the server the
+    /// rest).
+    pub limits: nephele_limits::ConnLimits,
 }
 
 impl Default for HubConfig {
@@ -66,6 +70,7 @@ impl Default for HubConfig {
             max_message_bytes: nephele_limits::MAX_SIGNAL_MESSAGE_BYTES,
             client_messages_per_s: nephele_limits::CLIENT_SIGNAL_MESSAGES_PER_S,
             client_message_burst: nephele_limits::CLIENT_SIGNAL_MESSAGE_BURST,
+            limits: nephele_limits::ConnLimits::default(),
         }
     }
 }
@@ -136,6 +141,9 @@ pub enum SignalError {
     /// A client sent messages faster than its allowance; the connection is closed.
     #[error("more than {burst} messages at once or {per_s} per second on average; disconnected")]
     RateLimited { burst: f64, per_s: f64 },
+    /// Too many sessions from one address are joined but not connected yet.
+    #[error("{pending} sessions from your address are still connecting (limit {limit}); finish or leave one first")]
+    PendingJoins { pending: usize, limit: usize },
 }
 
 impl SignalError {
@@ -150,7 +158,7 @@ impl SignalError {
             Self::BadRequest(_) => ErrorCode::BadRequest,
             Self::WrongRole { .. } => ErrorCode::WrongRole,
             Self::NotJoined(_) => ErrorCode::NotJoined,
-            Self::RateLimited { .. } => ErrorCode::RateLimited,
+            Self::RateLimited { .. } | Self::PendingJoins { .. } => ErrorCode::RateLimited,
         }
     }
 }
@@ -182,6 +190,10 @@ pub struct HubStats {
     pub clients: usize,
     /// Sessions paired with a master.
     pub sessions: usize,
+    /// Open HTTP/websocket connections (filled in by the server).
+    pub connections: usize,
+    /// Connections closed at accept because a cap was reached, since start.
+    pub connections_refused: u64,
 }
 
 #[derive(Debug)]
@@ -212,6 +224,8 @@ enum Peer {
 struct Session {
     client: ConnId,
     master: ConnId,
+    /// The master said its video connected.
+    connected: bool,
 }
 
 /// The signaling state machine. See the module docs.
@@ -221,6 +235,8 @@ pub struct Hub {
     peers: BTreeMap<ConnId, Peer>,
     /// Message allowance of each connection that is not a master: (tokens, last refill).
     allowance: BTreeMap<ConnId, (f64, Instant)>,
+    /// The peer address of each connection the IO edge told us.
+    addresses: BTreeMap<ConnId, IpAddr>,
     sessions: BTreeMap<String, Session>,
     next_session: u64,
 }
@@ -234,6 +250,7 @@ impl Hub {
             cfg,
             peers: BTreeMap::new(),
             allowance: BTreeMap::new(),
+            addresses: BTreeMap::new(),
             sessions: BTreeMap::new(),
             next_session: 1,
         }
@@ -248,6 +265,12 @@ impl Hub {
     pub fn connect(&mut self, conn: ConnId, now: Instant) {
         self.peers.insert(conn, Peer::Fresh);
         self.allowance.insert(conn, (self.cfg.client_message_burst, now));
+    }
+
+    /// A new connection from `address` (its pending joins count against the address).
+    pub fn connect_from(&mut self, conn: ConnId, address: IpAddr, now: Instant) {
+        self.connect(conn, now);
+        self.addresses.insert(conn, address);
     }
 
     /// Takes one message from a non-master connection's allowance (a token bucket).
@@ -302,6 +325,7 @@ impl Hub {
     /// `conn` is gone: its master hears `leave`, or its clients hear `master_lost`.
     pub fn disconnect(&mut self, conn: ConnId, _now: Instant) -> Vec<Outgoing> {
         self.allowance.remove(&conn);
+        self.addresses.remove(&conn);
         match self.peers.remove(&conn) {
             Some(Peer::Client {
                 session: Some(session),
@@ -365,6 +389,8 @@ impl Hub {
             masters,
             clients,
             sessions: self.sessions.len(),
+            connections: 0,
+            connections_refused: 0,
         }
     }
 
@@ -459,6 +485,13 @@ impl Hub {
                 })?;
                 Ok(self.to_client_of(conn, &session, ToClient::Ice { candidate }))
             }
+            (Peer::Master(m), ToSignal::Connected { session }) => {
+                m.last_seen = now;
+                if let Some(s) = self.sessions.get_mut(&session).filter(|s| s.master == conn) {
+                    s.connected = true;
+                }
+                Ok(Vec::new())
+            }
             (Peer::Master(m), ToSignal::Reject { session, reason }) => {
                 m.last_seen = now;
                 Ok(self.finish_by_master(
@@ -500,6 +533,13 @@ impl Hub {
             )));
         }
         req.validate()?;
+        if let Some(address) = self.addresses.get(&conn) {
+            let limit = self.cfg.limits.max_pending_joins_per_address;
+            let pending = self.sessions.values().filter(|s| !s.connected && self.addresses.get(&s.client) == Some(address)).count();
+            if pending >= limit {
+                return Err(SignalError::PendingJoins { pending, limit });
+            }
+        }
         let master_conn = self.pick_master(&req.scene)?;
         let session = format!("s{}", self.next_session);
         self.next_session += 1;
@@ -515,6 +555,7 @@ impl Hub {
             Session {
                 client: conn,
                 master: master_conn,
+                connected: false,
             },
         );
         self.peers.insert(
@@ -782,6 +823,7 @@ fn kind(msg: &ToSignal) -> &'static str {
         ToSignal::Register { .. } => "register",
         ToSignal::Heartbeat { .. } => "heartbeat",
         ToSignal::Answer { .. } => "answer",
+        ToSignal::Connected { .. } => "connected",
         ToSignal::Reject { .. } => "reject",
         ToSignal::End { .. } => "end",
     }
@@ -1262,7 +1304,9 @@ mod tests {
             HubStats {
                 masters: vec![],
                 clients: 3,
-                sessions: 0
+                sessions: 0,
+                connections: 0,
+                connections_refused: 0,
             }
         );
     }
@@ -1304,5 +1348,31 @@ mod tests {
             json_of(&send(&mut hub, 11, json!({"type":"offer","sdp":"v=0"}), t0))[0].0,
             2
         );
+    }
+
+    #[test]
+    fn joins_still_connecting_are_capped_per_address() {
+        let (mut hub, now) = hub_with(None);
+        hub.cfg.limits.max_pending_joins_per_address = 2;
+        add_master(&mut hub, 1, "m1", 100, now);
+        let (home, away): (IpAddr, IpAddr) = ("10.0.0.7".parse().unwrap(), "10.0.0.8".parse().unwrap());
+        let mut sessions = Vec::new();
+        for conn in 10..12 {
+            hub.connect_from(ConnId(conn), home, now);
+            let out = json_of(&send(&mut hub, conn, join_json(), now));
+            sessions.push(out[0].1["session"].as_str().unwrap().to_owned());
+        }
+        // A third join from the same address waits for one of the two to connect…
+        hub.connect_from(ConnId(12), home, now);
+        let (to, code, message) = error_code(&send(&mut hub, 12, join_json(), now));
+        assert_eq!((to, code.as_str()), (12, "rate_limited"), "{message}");
+        assert!(message.contains("limit 2"), "{message}");
+        // …while another address is not held up…
+        hub.connect_from(ConnId(13), away, now);
+        assert_eq!(json_of(&send(&mut hub, 13, join_json(), now)).len(), 2);
+        // …and once the master says one connected, the address may join again (the
+        // refused connection was not closed).
+        assert!(send(&mut hub, 1, json!({"type":"connected","session":sessions[0]}), now).is_empty());
+        assert_eq!(json_of(&send(&mut hub, 12, join_json(), now)).len(), 2);
     }
 }

@@ -9,9 +9,11 @@
 //! This crate knows nothing about rendering.
 
 pub mod hub;
+pub mod net;
 pub mod protocol;
 pub mod server;
 
 pub use hub::{ConnId, Hub, HubConfig, HubStats, MasterStats, Outgoing, SignalError};
 pub use protocol::{ErrorCode, Mode, QuiltSpec, ToClient, ToMaster, ToPeer, ToSignal};
+pub use net::{ConnGate, ConnPermit, serve_limited};
 pub use server::{SignalState, app, serve};

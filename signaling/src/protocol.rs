@@ -124,6 +124,12 @@ pub enum ToSignal {
         /// SDP of the master's answer.
         sdp: String,
     },
+    /// Master: the session's video connected (it no longer counts as a pending join of its
+    /// client's address).
+    Connected {
+        /// Session id from the `join`.
+        session: String,
+    },
     /// Master: refuse a session (e.g. unknown scene); the client gets `error rejected`.
     Reject {
         /// Session id being refused.

@@ -1,18 +1,21 @@
 //! The IO edge of signaling: axum routes, one task per websocket, a heartbeat tick.
 //!
-//! `GET /signal` upgrades to a websocket whose text frames are fed to the [`Hub`];
+//! `GET /signal` upgrades to a websocket whose text frames are fed to the [`Hub`]
+//! (served by [`crate::serve_limited`] under the connection caps; a websocket must speak
+//! within the hello timeout and then answer pings, or it is closed);
 //! the hub's [`Outgoing`] messages are delivered through a bounded per-connection
 //! channel to that connection's task, which owns the socket. `GET /status` returns
 //! [`HubStats`](crate::HubStats) as JSON. The hub sits behind a `std::sync::Mutex`:
 //! every hub call is short and synchronous, and no lock is held across an `.await`.
 
 use std::collections::HashMap;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use axum::Router;
-use axum::extract::State;
+use axum::extract::{ConnectInfo, State};
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -20,7 +23,10 @@ use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tracing::Instrument;
 
+use nephele_limits::ConnLimits;
+
 use crate::hub::{ConnId, Hub, HubConfig, Outgoing};
+use crate::net::{ConnGate, ConnPermit};
 
 /// Messages queued per connection before a non-reading peer is disconnected.
 const SEND_QUEUE_LEN: usize = 64;
@@ -47,6 +53,8 @@ struct Shared {
     next_conn: AtomicU64,
     max_message_bytes: usize,
     heartbeat_timeout: Duration,
+    limits: ConnLimits,
+    gate: ConnGate,
 }
 
 struct Core {
@@ -57,7 +65,7 @@ struct Core {
 impl SignalState {
     /// A fresh hub with `cfg`. Remember to [`spawn_tick_task`](Self::spawn_tick_task).
     pub fn new(cfg: HubConfig) -> Self {
-        let (max_message_bytes, heartbeat_timeout) = (cfg.max_message_bytes, cfg.heartbeat_timeout);
+        let (max_message_bytes, heartbeat_timeout, limits) = (cfg.max_message_bytes, cfg.heartbeat_timeout, cfg.limits);
         let operator_token = cfg.operator_token.clone();
         let core = Core {
             hub: Hub::new(cfg),
@@ -70,8 +78,15 @@ impl SignalState {
                 next_conn: AtomicU64::new(1),
                 max_message_bytes,
                 heartbeat_timeout,
+                limits,
+                gate: ConnGate::new(limits),
             }),
         }
+    }
+
+    /// The connection caps this state's server applies ([`crate::serve_limited`]).
+    pub fn gate(&self) -> ConnGate {
+        self.inner.gate.clone()
     }
 
     /// Spawn the task that drops masters whose heartbeat is older than the timeout.
@@ -106,7 +121,9 @@ impl SignalState {
 
     /// Current masters and load.
     pub fn stats(&self) -> crate::HubStats {
-        self.lock().hub.stats()
+        let mut stats = self.lock().hub.stats();
+        (stats.connections, stats.connections_refused) = self.inner.gate.snapshot();
+        stats
     }
 
     fn lock(&self) -> MutexGuard<'_, Core> {
@@ -161,7 +178,8 @@ pub fn app(state: SignalState) -> Router {
 pub async fn serve(listener: tokio::net::TcpListener, cfg: HubConfig) -> std::io::Result<()> {
     let state = SignalState::new(cfg);
     let tick = state.spawn_tick_task();
-    let result = axum::serve(listener, app(state).into_make_service_with_connect_info::<std::net::SocketAddr>()).await;
+    let gate = state.gate();
+    let result = crate::serve_limited(listener, app(state), gate).await;
     tick.abort();
     result
 }
@@ -173,36 +191,76 @@ async fn status(State(state): State<SignalState>, request: axum::extract::Reques
     axum::Json(state.stats()).into_response()
 }
 
-async fn upgrade(State(state): State<SignalState>, ws: WebSocketUpgrade) -> Response {
+async fn upgrade(State(state): State<SignalState>, ws: WebSocketUpgrade, request: axum::extract::Request) -> Response {
     // Frames up to 4x the hub limit reach the hub (which answers `too_large` and keeps
     // the connection); anything bigger is a protocol violation that drops the socket.
     let hard_limit_bytes = state.inner.max_message_bytes.saturating_mul(4).max(1024);
+    let buffer = state.inner.limits.ws_buffer_bytes.max(1024);
+    let peer = request.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip());
+    // Served by `serve_limited`, the socket holds its place under the caps until it closes.
+    let permit = request.extensions().get::<Arc<ConnPermit>>().cloned();
     ws.max_message_size(hard_limit_bytes)
         .max_frame_size(hard_limit_bytes)
+        .read_buffer_size(buffer)
+        .write_buffer_size(buffer)
+        .max_write_buffer_size(hard_limit_bytes.saturating_add(buffer))
         .on_upgrade(move |socket| {
             let conn = ConnId(state.inner.next_conn.fetch_add(1, Ordering::Relaxed));
-            run_connection(state, conn, socket).instrument(tracing::info_span!("signal", %conn))
+            async move {
+                run_connection(state, conn, peer, socket).await;
+                drop(permit);
+            }
+            .instrument(tracing::info_span!("signal", %conn))
         })
 }
 
-async fn run_connection(state: SignalState, conn: ConnId, mut socket: WebSocket) {
+async fn run_connection(state: SignalState, conn: ConnId, peer: Option<IpAddr>, mut socket: WebSocket) {
     let (tx, mut rx) = mpsc::channel(SEND_QUEUE_LEN);
     {
         let mut core = state.lock();
         core.senders.insert(conn, tx);
-        core.hub.connect(conn, Instant::now());
+        match peer {
+            Some(ip) => core.hub.connect_from(conn, ip, Instant::now()),
+            None => core.hub.connect(conn, Instant::now()),
+        }
     }
     tracing::debug!("connected");
+    // Silence: the first message must come within the hello timeout; after it, any message
+    // or pong within the idle timeout (we ping every quarter of it; browsers answer).
+    let limits = state.inner.limits;
+    let idle = Duration::from_millis(limits.idle_timeout_ms.max(40));
+    let mut deadline = tokio::time::Instant::now() + Duration::from_millis(limits.hello_timeout_ms.max(1));
+    let mut greeted = false;
+    let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + idle / 4, idle / 4);
     loop {
         tokio::select! {
+            _ = tokio::time::sleep_until(deadline) => {
+                let what = if greeted { "silent for the idle timeout" } else { "sent nothing within the hello timeout" };
+                tracing::debug!("closing a websocket that {what}");
+                let _ = tokio::time::timeout(Duration::from_secs(1), socket.send(Message::Close(None))).await;
+                break;
+            }
+            _ = ping.tick() => {
+                if tokio::time::timeout(SEND_TIMEOUT, socket.send(Message::Ping(Default::default()))).await.is_err() {
+                    break;
+                }
+            }
             incoming = socket.recv() => match incoming {
-                Some(Ok(Message::Text(text))) => state.with_hub(Some(conn), |hub| hub.handle_text(conn, text.as_str(), Instant::now())),
+                Some(Ok(Message::Text(text))) => {
+                    (greeted, deadline) = (true, tokio::time::Instant::now() + idle);
+                    state.with_hub(Some(conn), |hub| hub.handle_text(conn, text.as_str(), Instant::now()));
+                }
                 // JSON in a binary frame is tolerated; anything else is a bad message.
                 Some(Ok(Message::Binary(bytes))) => {
+                    (greeted, deadline) = (true, tokio::time::Instant::now() + idle);
                     let text = String::from_utf8_lossy(&bytes);
                     state.with_hub(Some(conn), |hub| hub.handle_text(conn, &text, Instant::now()));
                 }
-                Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
+                Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
+                    if greeted {
+                        deadline = tokio::time::Instant::now() + idle;
+                    }
+                }
                 // Answer the close handshake, so clients see a clean close and not 1006:
                 // tungstenite queued the reply, and the next read flushes it.
                 Some(Ok(Message::Close(_))) => {

@@ -152,7 +152,8 @@ async fn signaling_over_real_websockets() {
     let status = http_get(addr, "/status").await;
     assert_eq!(
         status,
-        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2})
+        // Three websockets, and this GET's own connection.
+        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2,"connections":4,"connections_refused":0})
     );
 
     // A client that goes away frees its slot and the master hears `leave`.
@@ -301,4 +302,58 @@ async fn the_close_handshake_is_answered() {
         Some(Ok(Message::Close(Some(frame)))) => assert_eq!(frame.code, CloseCode::Normal),
         other => panic!("expected a close frame back, got {other:?}"),
     }
+}
+
+/// Connection caps: sockets past the per-address cap (and past the total cap) are closed
+/// on accept; a closed socket frees its place.
+#[tokio::test]
+async fn connections_past_the_caps_are_closed_at_once() {
+    let limits = nephele_limits::ConnLimits { max_connections_per_address: 3, ..Default::default() };
+    let addr = start_with(HubConfig { limits, ..HubConfig::default() }).await;
+    let mut open = Vec::new();
+    for _ in 0..3 {
+        open.push(connect(addr).await);
+    }
+    assert!(connect_async(format!("ws://{addr}/signal")).await.is_err(), "a fourth socket from one address was accepted");
+    drop(open.pop());
+    // The server notices the close on its next read; then the place is free.
+    let mut again = None;
+    for _ in 0..50 {
+        if let Ok((ws, _)) = connect_async(format!("ws://{addr}/signal")).await {
+            again = Some(ws);
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(again.is_some(), "a closed socket did not free its place");
+
+    let limits = nephele_limits::ConnLimits { max_connections: 2, ..Default::default() };
+    let addr = start_with(HubConfig { limits, ..HubConfig::default() }).await;
+    let (_a, _b) = (connect(addr).await, connect(addr).await);
+    assert!(connect_async(format!("ws://{addr}/signal")).await.is_err(), "a third socket past the total cap was accepted");
+}
+
+/// Headers that never finish, and websockets that never speak, are closed.
+#[tokio::test]
+async fn slow_headers_and_silent_websockets_are_closed() {
+    let limits = nephele_limits::ConnLimits { header_timeout_ms: 300, hello_timeout_ms: 300, ..Default::default() };
+    let addr = start_with(HubConfig { limits, ..HubConfig::default() }).await;
+    // Slowloris: half a request, then nothing.
+    let mut s = TcpStream::connect(addr).await.unwrap();
+    s.write_all(b"GET /status HTTP/1.1\r\nHost: x\r\n").await.unwrap();
+    let mut buf = Vec::new();
+    let read = tokio::time::timeout(Duration::from_secs(5), s.read_to_end(&mut buf)).await;
+    assert!(read.is_ok(), "a request with unfinished headers was kept open for 5 s");
+    // A websocket that never sends `join` or `register`.
+    let mut ws = connect(addr).await;
+    let end = tokio::time::timeout(Duration::from_secs(5), async {
+        loop {
+            match ws.next().await {
+                None | Some(Err(_)) | Some(Ok(Message::Close(_))) => break,
+                Some(Ok(_)) => continue,
+            }
+        }
+    })
+    .await;
+    assert!(end.is_ok(), "a silent websocket was kept open for 5 s");
 }

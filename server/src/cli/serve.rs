@@ -5,6 +5,7 @@
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
+use nephele_limits::ConnLimits;
 use nephele_renderer::RenderSettings;
 
 use crate::{
@@ -157,7 +158,72 @@ pub struct ServeArgs {
     #[arg(long, env = "NEPHELE_OPERATOR_TOKEN", hide_env_values = true)]
     pub operator_token: Option<String>,
     #[command(flatten)]
+    pub limits: LimitArgs,
+    #[command(flatten)]
     pub master: MasterOptions,
+}
+
+/// What the HTTP/websocket server allows each connection and address (defaults:
+/// `nephele_limits::ConnLimits` and the signaling rate limits; README "Limits").
+#[derive(clap::Args, Debug, Clone)]
+pub struct LimitArgs {
+    /// Open connections at once (more are closed on accept).
+    #[arg(long, default_value_t = ConnLimits::default().max_connections)]
+    pub max_connections: usize,
+    /// Open connections at once from one IP address.
+    #[arg(long, default_value_t = ConnLimits::default().max_connections_per_address)]
+    pub max_connections_per_address: usize,
+    /// An HTTP request's headers must arrive within this many ms (also the keep-alive idle time).
+    #[arg(long, default_value_t = ConnLimits::default().header_timeout_ms)]
+    pub header_timeout_ms: u64,
+    /// A websocket must send `join`/`register` within this many ms.
+    #[arg(long, default_value_t = ConnLimits::default().hello_timeout_ms)]
+    pub hello_timeout_ms: u64,
+    /// A websocket silent (no message, no pong) for this many ms is closed.
+    #[arg(long, default_value_t = ConnLimits::default().idle_timeout_ms)]
+    pub idle_timeout_ms: u64,
+    /// Sessions from one IP address that may be joined but not yet connected.
+    #[arg(long, default_value_t = ConnLimits::default().max_pending_joins_per_address)]
+    pub max_pending_joins_per_address: usize,
+    /// Read and write buffer of each websocket, bytes.
+    #[arg(long, default_value_t = ConnLimits::default().ws_buffer_bytes)]
+    pub ws_buffer_bytes: usize,
+    /// Signaling messages per second a client connection may send on average…
+    #[arg(long, default_value_t = nephele_limits::CLIENT_SIGNAL_MESSAGES_PER_S)]
+    pub client_messages_per_s: f64,
+    /// …and in one burst (beyond: `rate_limited` and disconnected).
+    #[arg(long, default_value_t = nephele_limits::CLIENT_SIGNAL_MESSAGE_BURST)]
+    pub client_message_burst: f64,
+}
+
+impl LimitArgs {
+    /// Signaling's settings with these limits and `secrets` (token, master token, operator token).
+    pub fn hub(&self, token: Option<String>, master_token: Option<String>, operator_token: Option<String>) -> Result<nephele_signaling::HubConfig> {
+        let limits = ConnLimits {
+            max_connections: self.max_connections,
+            max_connections_per_address: self.max_connections_per_address,
+            header_timeout_ms: self.header_timeout_ms,
+            hello_timeout_ms: self.hello_timeout_ms,
+            idle_timeout_ms: self.idle_timeout_ms,
+            max_pending_joins_per_address: self.max_pending_joins_per_address,
+            ws_buffer_bytes: self.ws_buffer_bytes,
+        };
+        if limits.max_connections == 0 || limits.max_connections_per_address == 0 {
+            anyhow::bail!("--max-connections and --max-connections-per-address must be at least 1");
+        }
+        if !(self.client_messages_per_s > 0.0 && self.client_message_burst >= 1.0) {
+            anyhow::bail!("--client-messages-per-s must be > 0 and --client-message-burst ≥ 1");
+        }
+        Ok(nephele_signaling::HubConfig {
+            token,
+            master_token,
+            operator_token,
+            client_messages_per_s: self.client_messages_per_s,
+            client_message_burst: self.client_message_burst,
+            limits,
+            ..Default::default()
+        })
+    }
 }
 
 impl ServeArgs {
@@ -203,6 +269,8 @@ pub struct SignalArgs {
     /// answers loopback addresses only.
     #[arg(long, env = "NEPHELE_OPERATOR_TOKEN", hide_env_values = true)]
     pub operator_token: Option<String>,
+    #[command(flatten)]
+    pub limits: LimitArgs,
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
@@ -212,7 +280,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
         let names = catalog.names().join(", ");
         let backend = catalog.backend_name.clone();
-        let hub = nephele_signaling::HubConfig { token: args.token.clone(), operator_token: args.operator_token.clone(), master_token: args.master.master_token.clone(), ..Default::default() };
+        let hub = args.limits.hub(args.token.clone(), args.master.master_token.clone(), args.operator_token.clone())?;
         let server = web::spawn_local_with(listener, catalog, cfg, hub).await?;
         let addr = server.addr;
         println!("Nephele is serving {names} on {backend} — open http://{addr}/ (AR: http://{addr}/ar.html, metrics: http://{addr}/metrics)");
@@ -248,11 +316,11 @@ pub fn signal(args: SignalArgs) -> Result<()> {
         if args.token.is_some() && args.master_token.is_none() {
             anyhow::bail!("--token guards joins; masters need their own secret too: give --master-token (masters never accept the clients' token)");
         }
-        let cfg = nephele_signaling::HubConfig { token: args.token, master_token: args.master_token, operator_token: args.operator_token, ..Default::default() };
+        let cfg = args.limits.hub(args.token, args.master_token, args.operator_token)?;
         let state = nephele_signaling::SignalState::new(cfg);
         state.spawn_tick_task();
-        let app = web::signaling_router(state).into_make_service_with_connect_info::<std::net::SocketAddr>();
-        axum::serve(listener, app).await.context("signaling server failed")
+        let gate = state.gate();
+        nephele_signaling::serve_limited(listener, web::signaling_router(state), gate).await.context("signaling server failed")
     })
 }
 

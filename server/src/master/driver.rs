@@ -186,7 +186,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
                 let Some(ev) = ev else { bail!("the master's event channel closed") };
                 let input = match ev {
                     Event::Fatal(why) => bail!("{why}"),
-                    other => translate(other, &mut sessions, &events_tx, &compositor),
+                    other => translate(other, &mut sessions, &events_tx, &to_signal, &compositor),
                 };
                 if let Some(input) = input {
                     core.handle_input(Instant::now(), input);
@@ -198,7 +198,13 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
 }
 
 /// An event as the core's input (or handled here: encoded frames go on to the peer).
-fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mpsc::UnboundedSender<Event>, compositor: &Arc<Compositor>) -> Option<Input> {
+fn translate(
+    ev: Event,
+    sessions: &mut HashMap<String, SessionEdge>,
+    events: &mpsc::UnboundedSender<Event>,
+    to_signal: &mpsc::UnboundedSender<ToSignal>,
+    compositor: &Arc<Compositor>,
+) -> Option<Input> {
     match ev {
         Event::Fatal(_) => None,
         Event::Signal(msg) => match msg {
@@ -222,7 +228,11 @@ fn translate(ev: Event, sessions: &mut HashMap<String, SessionEdge>, events: &mp
             }
         },
         Event::Peer(session, ev) => match ev {
-            PeerEvent::Connected => Some(Input::PeerConnected { session }),
+            PeerEvent::Connected => {
+                // Signaling stops counting it as a pending join of its client's address.
+                let _ = to_signal.send(ToSignal::Connected { session: session.clone() });
+                Some(Input::PeerConnected { session })
+            }
             PeerEvent::ChannelOpen => Some(Input::ChannelOpen { session }),
             PeerEvent::Binary(bytes) => Some(Input::Pose { session, bytes }),
             PeerEvent::Text(text) => {

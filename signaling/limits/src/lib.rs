@@ -158,3 +158,46 @@ mod tests {
 /// Render tasks queued on one in-process render worker (beyond the one it is rendering): the
 /// core hands a worker a task only when it has a free slot, so this is a backstop.
 pub const MAX_QUEUED_TASKS_PER_WORKER: usize = 2;
+
+/// What one HTTP/websocket server (signaling and the pages) allows its connections. Every
+/// field has a flag on `nephele serve` and `nephele signal` (`--max-connections`, …); the
+/// defaults hold on a 2-core machine with a 1024 file-descriptor limit: 5,000 hostile
+/// connections cost the server at most `max_connections` sockets and buffers, and a
+/// well-behaved viewer keeps streaming.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConnLimits {
+    /// Open connections at once; more are closed as they arrive. Below the usual 1024
+    /// file-descriptor limit, which the media sockets and assets share.
+    pub max_connections: usize,
+    /// Open connections at once from one IP address.
+    pub max_connections_per_address: usize,
+    /// An HTTP request's headers must arrive within this (also how long an idle keep-alive
+    /// connection is kept), milliseconds.
+    pub header_timeout_ms: u64,
+    /// A websocket must send its first message (`join` or `register`) within this,
+    /// milliseconds.
+    pub hello_timeout_ms: u64,
+    /// A websocket silent for this long (no message, no answer to our pings, sent every
+    /// quarter of it) is closed, milliseconds.
+    pub idle_timeout_ms: u64,
+    /// Sessions from one IP address that are paired but whose video has not connected yet;
+    /// more joins get `rate_limited` (a join that never connects held a slot for 30 s).
+    pub max_pending_joins_per_address: usize,
+    /// Bytes a websocket reads into (and buffers for writing) at a time, each way; messages
+    /// themselves are bounded by [`MAX_SIGNAL_MESSAGE_BYTES`].
+    pub ws_buffer_bytes: usize,
+}
+
+impl Default for ConnLimits {
+    fn default() -> Self {
+        Self {
+            max_connections: 768,
+            max_connections_per_address: 64,
+            header_timeout_ms: 10_000,
+            hello_timeout_ms: 10_000,
+            idle_timeout_ms: 60_000,
+            max_pending_joins_per_address: 4,
+            ws_buffer_bytes: 16 * 1024,
+        }
+    }
+}
