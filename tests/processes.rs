@@ -112,3 +112,137 @@ fn a_stopped_master_is_noticed_within_seconds() {
     // Silence of 3 s, checked four times per timeout: at most ~3.75 s (+ one heartbeat).
     assert!(noticed <= std::time::Duration::from_millis(4800), "noticed after {noticed:?}");
 }
+
+/// `nephele signal --listen addr` as a child; waits until it prints its address.
+fn spawn_signal_at(addr: &str) -> Reap {
+    use std::io::{BufRead, BufReader};
+    let mut child = nephele().args(["signal", "--listen", addr]).stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.contains("ws://"), "signal printed {line:?}");
+    Reap(child)
+}
+
+/// `GET /status` of signaling at `addr`, parsed (`None` while it is down).
+fn status(addr: &str) -> Option<serde_json::Value> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).ok()?;
+    write!(s, "GET /status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").ok()?;
+    let mut body = String::new();
+    s.read_to_string(&mut body).ok()?;
+    serde_json::from_str(body.split("\r\n\r\n").nth(1)?).ok()
+}
+
+/// Failure of the middle: signaling is killed and started again on the same address while
+/// a session streams. The stream (peer to peer, owned by the master) never stops: no gap
+/// between decoded frames reaches 1 s, the client hears no error, the master registers
+/// again (still counting the session), and a new client joins through the new signaling.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streams_survive_a_signaling_restart() {
+    use std::{
+        sync::{Arc, Mutex},
+        time::{Duration, Instant},
+    };
+
+    use nephele::{
+        client::{ClientOptions, StreamClient, replay::Trace},
+        wire::PoseMessage,
+    };
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let url = format!("ws://{addr}/signal");
+    let mut signal = Some(spawn_signal_at(&addr));
+    let scene = format!("trio={}", repo().join("examples/assets/trio-small.nolf").display());
+    let _master = Reap(
+        nephele()
+            .args(["master", "--signal", &url, "--scene", &scene, "--backend", "cpu", "--loopback-only", "--render-scale", "1", "--admission", "open"])
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, keep_pixels: false, quilt: None };
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let mut client = loop {
+        match StreamClient::connect(&opts).await {
+            Ok(c) => break c,
+            Err(e) => {
+                assert!(Instant::now() < deadline, "the master never took a session: {e:#}");
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+        }
+    };
+    // Decoded-frame times, and anything signaling says.
+    let arrivals = Arc::new(Mutex::new(Vec::<Instant>::new()));
+    let mut frames = std::mem::replace(&mut client.frames, tokio::sync::mpsc::unbounded_channel().1);
+    let seen = Arc::clone(&arrivals);
+    tokio::spawn(async move {
+        while let Some(f) = frames.recv().await {
+            seen.lock().unwrap().push(f.decoded_at);
+        }
+    });
+    let mut said = std::mem::replace(&mut client.signaling, tokio::sync::mpsc::unbounded_channel().1);
+    let heard = Arc::new(Mutex::new(Vec::new()));
+    let log = Arc::clone(&heard);
+    tokio::spawn(async move {
+        while let Some(m) = said.recv().await {
+            log.lock().unwrap().push(format!("{m:?}"));
+        }
+    });
+    let client = Arc::new(client);
+    let poser = Arc::clone(&client);
+    let posing = tokio::spawn(async move {
+        let trace = Trace::builtin("orbit").unwrap();
+        for seq in 1.. {
+            let pose = PoseMessage {
+                seq,
+                t_client_ms: f64::from(seq) * 20.0,
+                world_from_camera: glam::Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
+                intrinsics: trace.intrinsics(160, 120),
+                world_from_anchor: None,
+            };
+            if poser.send_pose(&pose).await.is_err() {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let before = arrivals.lock().unwrap().len();
+    assert!(before >= 10, "only {before} frames before the restart");
+
+    // Signaling goes away for a second, then comes back on the same address.
+    let killed_at = Instant::now();
+    signal = None;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    drop(signal);
+    let _signal = spawn_signal_at(&addr);
+    let back = loop {
+        let sessions = tokio::task::spawn_blocking({
+            let addr = addr.clone();
+            move || status(&addr).and_then(|s| s["masters"].get(0).map(|m| m["sessions"].as_u64().unwrap_or(0)))
+        })
+        .await
+        .unwrap();
+        if sessions == Some(1) {
+            break killed_at.elapsed();
+        }
+        assert!(killed_at.elapsed() < Duration::from_secs(20), "the master did not register again with its session");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let times = arrivals.lock().unwrap().clone();
+    let during = times.iter().filter(|t| **t >= killed_at).count();
+    let gap = times.windows(2).map(|w| w[1] - w[0]).max().unwrap();
+    println!("signaling down for 1 s, master registered again after {:.2} s; frames during: {during}; longest gap {} ms", back.as_secs_f64(), gap.as_millis());
+    assert!(heard.lock().unwrap().is_empty(), "the client heard from signaling: {:?}", heard.lock().unwrap());
+    assert!(gap < Duration::from_secs(1), "the stream stopped for {gap:?}");
+    assert!(during >= 25, "only {during} frames since signaling went away");
+
+    // Someone new joins through the new signaling.
+    let mut second = StreamClient::connect(&opts).await.expect("a new client joins after the restart");
+    let pose = PoseMessage { seq: 1, t_client_ms: 0.0, world_from_camera: glam::Mat4::from_cols_array(&Trace::builtin("orbit").unwrap().poses[0]), intrinsics: Trace::builtin("orbit").unwrap().intrinsics(160, 120), world_from_anchor: None };
+    second.send_pose(&pose).await.unwrap();
+    let frame = tokio::time::timeout(Duration::from_secs(20), second.frames.recv()).await;
+    assert!(matches!(frame, Ok(Some(_))), "the new client got no frame");
+    posing.abort();
+}

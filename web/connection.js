@@ -262,6 +262,15 @@ export class Connection {
     };
     ws.onclose = (e) => {
       if (stale()) return;
+      if (this.state === 'connected' || this.state === 'disconnected') {
+        // The video is peer to peer and belongs to the master now: it goes on without
+        // signaling (a signaling restart, a proxy's timeout). A broken peer still fails.
+        this.ws = null;
+        this.recordError('connection_lost', 'signaling closed; the stream continues');
+        this.setBanner('Signaling connection lost — the stream continues', 'info');
+        this.bannerTimer = setTimeout(() => { if (!stale() && this.state === 'connected') this.setBanner(null); }, 3000);
+        return;
+      }
       // 1006 (abnormal closure) carries no reason worth showing.
       this.fail(opened ? 'connection_lost' : 'unreachable', e.reason || (e.code === 1006 ? '' : `websocket closed (${e.code})`));
     };

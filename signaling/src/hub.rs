@@ -239,6 +239,9 @@ pub struct Hub {
     addresses: BTreeMap<ConnId, IpAddr>,
     sessions: BTreeMap<String, Session>,
     next_session: u64,
+    /// Starts every session id; unique per hub so that ids never repeat across a restart
+    /// (sessions outlive signaling: their masters still hold the old ids).
+    session_prefix: String,
 }
 
 type Res = Result<Vec<Outgoing>, SignalError>;
@@ -253,7 +256,14 @@ impl Hub {
             addresses: BTreeMap::new(),
             sessions: BTreeMap::new(),
             next_session: 1,
+            session_prefix: "s".into(),
         }
+    }
+
+    /// Session ids start with `prefix` (`[A-Za-z0-9_-]`; the default is `s`).
+    pub fn with_session_prefix(mut self, prefix: &str) -> Self {
+        self.session_prefix = prefix.chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-' || *c == '_').take(24).collect();
+        self
     }
 
     /// The configuration.
@@ -322,11 +332,21 @@ impl Hub {
         })
     }
 
-    /// `conn` is gone: its master hears `leave`, or its clients hear `master_lost`.
+    /// `conn` is gone: its master hears `leave` (unless the session's video is connected:
+    /// the stream is peer to peer and belongs to the master now, which ends it when the peer
+    /// connection closes), or its clients hear `master_lost`.
     pub fn disconnect(&mut self, conn: ConnId, _now: Instant) -> Vec<Outgoing> {
         self.allowance.remove(&conn);
         self.addresses.remove(&conn);
         match self.peers.remove(&conn) {
+            Some(Peer::Client {
+                session: Some(session),
+            }) if self.sessions.get(&session).is_some_and(|s| s.connected) => {
+                // The master still counts it (and says so in its next heartbeat).
+                self.sessions.remove(&session);
+                tracing::info!(%session, "the client's signaling connection closed; its stream lives on with the master");
+                Vec::new()
+            }
             Some(Peer::Client {
                 session: Some(session),
             }) => self.end_session(&session).1.into_iter().collect(),
@@ -541,7 +561,7 @@ impl Hub {
             }
         }
         let master_conn = self.pick_master(&req.scene)?;
-        let session = format!("s{}", self.next_session);
+        let session = format!("{}{}", self.session_prefix, self.next_session);
         self.next_session += 1;
         let Some(Peer::Master(master)) = self.peers.get_mut(&master_conn) else {
             unreachable!("picked a master")
@@ -1374,5 +1394,21 @@ mod tests {
         // refused connection was not closed).
         assert!(send(&mut hub, 1, json!({"type":"connected","session":sessions[0]}), now).is_empty());
         assert_eq!(json_of(&send(&mut hub, 12, join_json(), now)).len(), 2);
+    }
+
+    #[test]
+    fn a_connected_session_outlives_its_clients_signaling_connection() {
+        let (mut hub, now) = hub_with(None);
+        add_master(&mut hub, 1, "m1", 4, now);
+        let (connected, _) = add_client(&mut hub, 10, now);
+        let (_connecting, _) = add_client(&mut hub, 11, now);
+        assert!(send(&mut hub, 1, json!({"type":"connected","session":connected}), now).is_empty());
+        // Its video is up: the master keeps the session (no `leave`), the slot stays taken.
+        assert!(hub.disconnect(ConnId(10), now).is_empty());
+        assert_eq!(master_sessions(&hub), vec![("m1".into(), 2)]);
+        // Still connecting: the join is abandoned and the master hears `leave`.
+        let out = json_of(&hub.disconnect(ConnId(11), now));
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].1["type"], "leave");
     }
 }

@@ -67,8 +67,11 @@ impl SignalState {
     pub fn new(cfg: HubConfig) -> Self {
         let (max_message_bytes, heartbeat_timeout, limits) = (cfg.max_message_bytes, cfg.heartbeat_timeout, cfg.limits);
         let operator_token = cfg.operator_token.clone();
+        // Session ids of this run must differ from those of a signaling that ran before
+        // (its sessions may still stream): the start time makes the prefix.
+        let started_ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis());
         let core = Core {
-            hub: Hub::new(cfg),
+            hub: Hub::new(cfg).with_session_prefix(&format!("s{:x}-", started_ms & 0xffff_ffff_ffff)),
             senders: HashMap::new(),
         };
         Self {

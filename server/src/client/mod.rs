@@ -1,13 +1,15 @@
 //! A real streaming client in Rust: joins through signaling, offers a recvonly H.264 video
 //! m-line and the unordered `pose` channel (like the browser page), reassembles RTP into
-//! access units on the marker bit, and decodes them with OpenH264 on its own thread.
+//! access units in sequence order (waiting briefly for NACK retransmissions; after a loss
+//! it drops P frames and sends a PLI until an IDR comes: [`reassembly`]), and decodes them
+//! with OpenH264 on its own thread.
 //! Used by `nephele replay`, `nephele bench stream|users` and the end-to-end tests. It
 //! shares only the wire protocol ([`crate::wire`]) with the master.
 
 use std::{
     sync::{
         Arc,
-        atomic::{AtomicU32, Ordering},
+        atomic::{AtomicU32, AtomicU64, Ordering},
     },
     time::{Duration, Instant},
 };
@@ -21,10 +23,10 @@ use tokio::sync::mpsc;
 use tokio_tungstenite::tungstenite::Message;
 use webrtc::{
     data_channel::{RTCDataChannel, data_channel_init::RTCDataChannelInit, data_channel_message::DataChannelMessage},
+    api::setting_engine::SettingEngine,
     ice_transport::ice_candidate::RTCIceCandidateInit,
     peer_connection::{RTCPeerConnection, configuration::RTCConfiguration, sdp::session_description::RTCSessionDescription},
     rtcp::payload_feedbacks::picture_loss_indication::PictureLossIndication,
-    rtp::{codecs::h264::H264Packet, packetizer::Depacketizer},
     rtp_transceiver::{
         RTCRtpTransceiverInit, rtp_codec::RTPCodecType, rtp_transceiver_direction::RTCRtpTransceiverDirection,
     },
@@ -32,11 +34,28 @@ use webrtc::{
 
 use crate::wire::{
     PoseMessage, ToViewer,
-    media::{RtcConfig, build_api, candidate_json},
+    media::{RtcConfig, build_api_with, candidate_json},
     sei::parse_pose_seq,
 };
 
+pub mod reassembly;
 pub mod replay;
+
+pub use reassembly::ReceiveCounts;
+use reassembly::{ReceiveStats, Reassembler, Unit};
+
+/// How the client's peer meets the network. [`Default`] (what [`StreamClient::connect`]
+/// uses): loopback candidates only, sockets of the `webrtc` crate's own.
+#[derive(Clone, Default)]
+pub struct ClientNet {
+    /// Gather candidates on every interface, not only loopback (a server on another host
+    /// or in another network namespace).
+    pub any_interface: bool,
+    /// Applied last to the peer's network settings (tests: which addresses, one impaired
+    /// socket through `SettingEngine::set_udp_network`).
+    #[allow(clippy::type_complexity)]
+    pub settings: Option<Arc<dyn Fn(&mut SettingEngine) + Send + Sync>>,
+}
 
 /// What to ask signaling for.
 #[derive(Debug, Clone)]
@@ -69,6 +88,8 @@ pub struct ReceivedFrame {
     pub height: u32,
     /// RGBA8, `width`×`height` (empty unless `keep_pixels`).
     pub rgba: Vec<u8>,
+    /// The access unit was an IDR.
+    pub idr: bool,
 }
 
 /// A connected client; receive from `frames` and `messages`.
@@ -83,15 +104,33 @@ pub struct StreamClient {
     pub signaling: mpsc::UnboundedReceiver<ToClient>,
     ws_out: mpsc::UnboundedSender<ToSignal>,
     video_ssrc: Arc<AtomicU32>,
+    stats: Arc<ReceiveStats>,
+    /// When [`StreamClient::send_pose_paced`] last sent, and how many it held back.
+    last_paced: std::sync::Mutex<Option<Instant>>,
+    poses_held_back: AtomicU64,
 }
+
+/// Unacknowledged pose-channel bytes up to which [`StreamClient::send_pose_paced`] sends
+/// every pose (three poses).
+pub const POSE_BACKLOG_FREE: usize = 312;
+/// The `webrtc` crate's SCTP congestion window after a retransmission timeout (one MTU of
+/// 1228 bytes): DATA beyond it waits for the next timeout, which backs off from 1 s.
+pub const SCTP_WINDOW_AFTER_TIMEOUT: usize = 1228;
+/// Above [`POSE_BACKLOG_FREE`], [`StreamClient::send_pose_paced`] sends one pose this often.
+pub const POSE_PROBE_EVERY: Duration = Duration::from_millis(300);
 
 impl StreamClient {
     /// Joins, negotiates and waits (up to 30 s) for the pose channel and the session message.
     pub async fn connect(opts: &ClientOptions) -> Result<Self> {
-        tokio::time::timeout(Duration::from_secs(30), Self::connect_inner(opts)).await.context("timed out connecting (30 s)")?
+        Self::connect_with(opts, &ClientNet::default()).await
     }
 
-    async fn connect_inner(opts: &ClientOptions) -> Result<Self> {
+    /// [`StreamClient::connect`] through the network `net`.
+    pub async fn connect_with(opts: &ClientOptions, net: &ClientNet) -> Result<Self> {
+        tokio::time::timeout(Duration::from_secs(30), Self::connect_inner(opts, net)).await.context("timed out connecting (30 s)")?
+    }
+
+    async fn connect_inner(opts: &ClientOptions, net: &ClientNet) -> Result<Self> {
         let (ws, _) = tokio_tungstenite::connect_async(&opts.signal_url).await.with_context(|| format!("connecting to {}", opts.signal_url))?;
         let (mut ws_tx, mut ws_rx) = ws.split();
         let join = ToSignal::Join {
@@ -110,7 +149,12 @@ impl StreamClient {
             other => bail!("unexpected signaling message before joined: {other:?}"),
         }
 
-        let api = build_api(&RtcConfig { loopback_only: true, public_ips: vec![] })?;
+        let tweak = |s: &mut SettingEngine| {
+            if let Some(f) = &net.settings {
+                f(s);
+            }
+        };
+        let api = build_api_with(&RtcConfig { loopback_only: !net.any_interface, public_ips: vec![] }, &tweak)?;
         let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
         pc.add_transceiver_from_kind(
             RTPCodecType::Video,
@@ -136,31 +180,29 @@ impl StreamClient {
         let (w, h) = (opts.width, opts.height);
         let video_ssrc = Arc::new(AtomicU32::new(0));
         let ssrc_slot = Arc::clone(&video_ssrc);
+        let stats = Arc::new(ReceiveStats::default());
+        let (pli_tx, pli_rx) = mpsc::unbounded_channel::<()>();
+        tokio::spawn(send_plis(Arc::downgrade(&pc), Arc::clone(&video_ssrc), Arc::clone(&stats), pli_rx));
+        let track_stats = Arc::clone(&stats);
         pc.on_track(Box::new(move |track, _, _| {
-            let frame_tx = frame_tx.clone();
+            let (frame_tx, pli_tx, stats) = (frame_tx.clone(), pli_tx.clone(), Arc::clone(&track_stats));
             ssrc_slot.store(track.ssrc(), Ordering::Relaxed);
             Box::pin(async move {
-                let (au_tx, au_rx) = std::sync::mpsc::channel::<(Vec<u8>, Instant)>();
-                std::thread::spawn(move || decode_loop(au_rx, frame_tx, keep_pixels, w, h));
+                let (au_tx, au_rx) = std::sync::mpsc::channel::<Unit>();
+                let (fail_tx, fail_rx) = mpsc::unbounded_channel::<()>();
+                let decode_stats = Arc::clone(&stats);
+                std::thread::spawn(move || decode_loop(au_rx, frame_tx, fail_tx, decode_stats, keep_pixels, w, h));
+                // One task only reads (a read is not cancelled half-way), the other orders.
+                let (packet_tx, packet_rx) = mpsc::unbounded_channel();
                 tokio::spawn(async move {
-                    let mut depacketizer = H264Packet::default();
-                    let mut au: Vec<u8> = Vec::new();
-                    let mut au_timestamp = None;
                     while let Ok((packet, _)) = track.read_rtp().await {
-                        // A new timestamp without a marker on the last one: the end was lost.
-                        if au_timestamp.is_some_and(|t| t != packet.header.timestamp) && !au.is_empty() {
-                            let _ = au_tx.send((std::mem::take(&mut au), Instant::now()));
-                        }
-                        au_timestamp = Some(packet.header.timestamp);
-                        match depacketizer.depacketize(&packet.payload) {
-                            Ok(nals) => au.extend_from_slice(&nals),
-                            Err(e) => tracing::debug!("dropping an RTP packet: {e}"),
-                        }
-                        if packet.header.marker && !au.is_empty() {
-                            let _ = au_tx.send((std::mem::take(&mut au), Instant::now()));
+                        if packet_tx.send((packet, Instant::now())).is_err() {
+                            break;
                         }
                     }
                 });
+                let reassembler = Reassembler::new(reassembly::DEFAULT_WAIT, stats);
+                tokio::spawn(reassemble(packet_rx, fail_rx, au_tx, pli_tx, reassembler));
             })
         }));
 
@@ -235,11 +277,46 @@ impl StreamClient {
                 },
             }
         };
-        Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc })
+        Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc, stats, last_paced: std::sync::Mutex::new(None), poses_held_back: AtomicU64::new(0) })
     }
 
     pub async fn send_pose(&self, pose: &PoseMessage) -> Result<()> {
         self.send_bytes(Bytes::from(pose.encode())).await
+    }
+
+    /// Sends a pose unless it would only queue behind unacknowledged ones; returns whether it
+    /// went out. Poses are latest-wins and never retransmitted, so a backlog is worth nothing,
+    /// and on a path that went dark it is harmful: the pose channel's SCTP keeps the lost
+    /// messages in flight until a timeout that backs off from 1 s (2 s, 4 s, ...), and when
+    /// they fill its congestion window nothing new leaves until then, so the stream would
+    /// stay frozen for seconds after the path is back. Here the backlog stays below what
+    /// that window lets through: every pose while at most [`POSE_BACKLOG_FREE`] bytes are
+    /// unacknowledged, otherwise one every [`POSE_PROBE_EVERY`] while they fit in
+    /// [`SCTP_WINDOW_AFTER_TIMEOUT`]. The first of those to arrive after an outage is
+    /// acknowledged at once (it leaves a gap), which clears the lost ones (FORWARD-TSN).
+    pub async fn send_pose_paced(&self, pose: &PoseMessage) -> Result<bool> {
+        let bytes = pose.encode();
+        let backlog = self.channel.buffered_amount().await + bytes.len();
+        let now = Instant::now();
+        let send = {
+            let mut last = self.last_paced.lock().unwrap_or_else(|e| e.into_inner());
+            let send = backlog <= POSE_BACKLOG_FREE || (backlog <= SCTP_WINDOW_AFTER_TIMEOUT && last.is_none_or(|t| now - t >= POSE_PROBE_EVERY));
+            if send {
+                *last = Some(now);
+            }
+            send
+        };
+        if !send {
+            self.poses_held_back.fetch_add(1, Ordering::Relaxed);
+            return Ok(false);
+        }
+        self.send_bytes(Bytes::from(bytes)).await?;
+        Ok(true)
+    }
+
+    /// Poses [`StreamClient::send_pose_paced`] held back so far.
+    pub fn poses_held_back(&self) -> u64 {
+        self.poses_held_back.load(Ordering::Relaxed)
     }
 
     /// Sends arbitrary bytes on the pose channel (tests of bad input).
@@ -257,7 +334,18 @@ impl StreamClient {
     pub async fn send_pli(&self) -> Result<()> {
         let ssrc = self.video_ssrc.load(Ordering::Relaxed);
         self.pc.write_rtcp(&[Box::new(PictureLossIndication { sender_ssrc: 0, media_ssrc: ssrc })]).await?;
+        self.stats.count_pli();
         Ok(())
+    }
+
+    /// Bytes sent on the pose channel and not acknowledged yet (SCTP's buffered amount).
+    pub async fn pose_backlog(&self) -> usize {
+        self.channel.buffered_amount().await
+    }
+
+    /// What the receive path has counted so far (packets late, lost, IDRs, PLIs sent, ...).
+    pub fn receive_stats(&self) -> ReceiveCounts {
+        self.stats.snapshot()
     }
 
     pub async fn close(self) {
@@ -282,10 +370,58 @@ where
     }
 }
 
+/// Orders the track's packets into access units for the decoder; asks for PLIs when a
+/// picture is lost (a hole given up, or the decoder refused an access unit).
+async fn reassemble(
+    mut packets: mpsc::UnboundedReceiver<(webrtc::rtp::packet::Packet, Instant)>,
+    mut failures: mpsc::UnboundedReceiver<()>,
+    aus: std::sync::mpsc::Sender<Unit>,
+    pli: mpsc::UnboundedSender<()>,
+    mut r: Reassembler,
+) {
+    loop {
+        let deadline = r.deadline();
+        tokio::select! {
+            p = packets.recv() => match p {
+                Some((p, at)) => r.push(p.header.sequence_number, p.header.timestamp, p.header.marker, p.payload, at),
+                None => return,
+            },
+            Some(()) = failures.recv() => r.request_idr(Instant::now()),
+            _ = tokio::time::sleep_until(tokio::time::Instant::from_std(deadline.unwrap_or_else(Instant::now))), if deadline.is_some() => {}
+        }
+        let now = Instant::now();
+        while let Some(unit) = r.pop(now) {
+            if aus.send(unit).is_err() {
+                return;
+            }
+        }
+        if r.take_pli(now) {
+            let _ = pli.send(());
+        }
+    }
+}
+
+/// Writes the PLIs [`reassemble`] asks for (it spaces them out).
+async fn send_plis(pc: std::sync::Weak<RTCPeerConnection>, ssrc: Arc<AtomicU32>, stats: Arc<ReceiveStats>, mut wanted: mpsc::UnboundedReceiver<()>) {
+    while wanted.recv().await.is_some() {
+        let Some(pc) = pc.upgrade() else { return };
+        let pli = PictureLossIndication { sender_ssrc: 0, media_ssrc: ssrc.load(Ordering::Relaxed) };
+        match pc.write_rtcp(&[Box::new(pli)]).await {
+            Ok(_) => {
+                stats.count_pli();
+                tracing::debug!("picture lost: PLI sent");
+            }
+            Err(e) => tracing::debug!("cannot send a PLI: {e}"),
+        }
+    }
+}
+
 /// Decoder thread: access units in, RGBA frames out (cropped to the session size).
 fn decode_loop(
-    aus: std::sync::mpsc::Receiver<(Vec<u8>, Instant)>,
+    aus: std::sync::mpsc::Receiver<Unit>,
     out: mpsc::UnboundedSender<ReceivedFrame>,
+    failures: mpsc::UnboundedSender<()>,
+    stats: Arc<ReceiveStats>,
     keep_pixels: bool,
     width: u32,
     height: u32,
@@ -298,13 +434,22 @@ fn decode_loop(
         }
     };
     let mut full = Vec::new();
-    for (au, arrived_at) in aus {
+    // After a refused access unit, P frames already queued are skipped up to the next IDR.
+    let mut broken = false;
+    for Unit { annex_b: au, arrived_at, idr } in aus {
+        if broken && !idr {
+            continue;
+        }
+        broken = false;
         let pose_seq = parse_pose_seq(&au);
         let decoded = match decoder.decode(&au) {
             Ok(Some(yuv)) => yuv,
             Ok(None) => continue,
             Err(e) => {
                 tracing::debug!("undecodable access unit: {e}");
+                stats.count_decode_error();
+                broken = true;
+                let _ = failures.send(());
                 continue;
             }
         };
@@ -327,6 +472,7 @@ fn decode_loop(
             width: width.min(dw as u32),
             height: height.min(dh as u32),
             rgba,
+            idr,
         };
         if out.send(frame).is_err() {
             return;

@@ -269,6 +269,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
     let mut next = 0usize;
     let mut drain_until: Option<tokio::time::Instant> = None;
+    let mut signaling_open = true;
     let start = Instant::now();
     loop {
         tokio::select! {
@@ -309,9 +310,11 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
                 Some(_) => {}
                 None => bail!("the pose channel closed early"),
             },
-            s = client.signaling.recv() => {
-                if let Some(s) = s { bail!("signaling: {s:?}") }
-            }
+            // Signaling may go away (a restart) while the stream, peer to peer, goes on.
+            s = client.signaling.recv(), if signaling_open => match s {
+                Some(s) => bail!("signaling: {s:?}"),
+                None => signaling_open = false,
+            },
             _ = async { tokio::time::sleep_until(drain_until.expect("guarded")).await }, if drain_until.is_some() => break,
         }
     }

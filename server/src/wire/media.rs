@@ -5,7 +5,7 @@
 //! The master's peer and the headless client both build on this module and nothing else of
 //! each other.
 
-use std::{net::IpAddr, sync::Arc};
+use std::{net::IpAddr, sync::Arc, time::Duration};
 
 use anyhow::{Context, Result};
 use glam::Vec3;
@@ -45,8 +45,19 @@ pub struct RtcConfig {
     pub public_ips: Vec<String>,
 }
 
+/// Silence before a peer connection is `disconnected`…
+pub const ICE_DISCONNECTED_AFTER: Duration = Duration::from_secs(4);
+/// …and then before it is `failed` (its session ends).
+pub const ICE_FAILED_AFTER: Duration = Duration::from_secs(6);
+
 /// Builds the `webrtc` API object shared by all peers of a process.
 pub fn build_api(cfg: &RtcConfig) -> Result<Arc<API>> {
+    build_api_with(cfg, &|_| {})
+}
+
+/// [`build_api`], with `tweak` having the last word on the network settings (the test
+/// client: which interfaces, an impaired socket).
+pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Result<Arc<API>> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video).context("registering H.264")?;
     let mut registry = Registry::new();
@@ -54,12 +65,17 @@ pub fn build_api(cfg: &RtcConfig) -> Result<Arc<API>> {
     registry = register_default_interceptors(registry, &mut media).context("registering interceptors")?;
     let mut settings = SettingEngine::default();
     settings.set_include_loopback_candidate(true);
+    // A peer that vanished without closing (a killed tab or process) is given up after
+    // ~10 s of silence (4 s to disconnected, 6 s more to failed) instead of webrtc's 30 s,
+    // so its session and slot are freed; a 2 s network blackout stays well inside it.
+    settings.set_ice_timeouts(Some(ICE_DISCONNECTED_AFTER), Some(ICE_FAILED_AFTER), Some(Duration::from_secs(1)));
     if cfg.loopback_only {
         settings.set_ip_filter(Box::new(|ip: IpAddr| ip.is_loopback()));
     }
     if !cfg.public_ips.is_empty() {
         settings.set_nat_1to1_ips(cfg.public_ips.clone(), webrtc::ice_transport::ice_candidate_type::RTCIceCandidateType::Host);
     }
+    tweak(&mut settings);
     Ok(Arc::new(
         APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build(),
     ))
