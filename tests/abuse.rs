@@ -117,3 +117,21 @@ async fn leaving_cancels_the_render_of_a_4k_frame() {
     assert!(bystander.frames() > attack_start.1, "the bystander got no frames during the attack");
     assert!(after >= 0.5 * before, "the bystander did not recover: {after:.1} fps after, {before:.1} before");
 }
+
+/// All at once, against a `nephele serve` child: 5,000 idle connections from 100 loopback
+/// addresses, a relay flood, a 4K join/leave loop and an empty-message loop. The viewer
+/// keeps streaming and hears nothing, the server stays under 500 MB, and the caps refuse
+/// most of the idle sockets at accept. (Its frame rate kept is measured, not asserted:
+/// `nephele bench abuse` prints it.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_viewer_keeps_streaming_through_four_attacks_at_once() {
+    use nephele::cli::abuse::{AbuseArgs, Attack, abuse, format_report};
+    let args = AbuseArgs { scene: nephele_e2e::fixture_scene(), connections: 5000, addresses: 100, seconds: 5, size: "160x120".into(), fps: 25, attacks: vec![Attack::Idle, Attack::Flood, Attack::Rejoin, Attack::Empty], attacker_nice: 19, attack_url: None };
+    let report = abuse(&args, &nephele_e2e::nephele_bin()).await.expect("the attack runs");
+    println!("{}", format_report(&args, &report));
+    assert!(report.viewer_errors.is_empty(), "the viewer heard: {:?}", report.viewer_errors);
+    assert!(report.fps_during > 0.0 && report.fps_after > 0.0, "the viewer stopped streaming: {report:?}");
+    assert!(report.rss_peak_mb < 500.0, "the server reached {:.0} MB", report.rss_peak_mb);
+    assert!(report.connections_refused_by_server >= 1000, "the caps refused only {} of 5,000 idle sockets", report.connections_refused_by_server);
+    assert!(report.rejoin_cycles >= 1 && report.empty_message_cycles >= 1 && report.flood_connections >= 1, "an attack did not run: {report:?}");
+}

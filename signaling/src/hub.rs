@@ -266,6 +266,11 @@ impl Hub {
         self
     }
 
+    /// Whether `conn` is a registered master.
+    pub fn is_master(&self, conn: ConnId) -> bool {
+        matches!(self.peers.get(&conn), Some(Peer::Master(_)))
+    }
+
     /// The configuration.
     pub fn config(&self) -> &HubConfig {
         &self.cfg

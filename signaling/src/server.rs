@@ -28,8 +28,13 @@ use nephele_limits::ConnLimits;
 use crate::hub::{ConnId, Hub, HubConfig, Outgoing};
 use crate::net::{ConnGate, ConnPermit};
 
-/// Messages queued per connection before a non-reading peer is disconnected.
+/// Messages queued for a client before a non-reading client is disconnected…
 const SEND_QUEUE_LEN: usize = 64;
+/// …and for a master, which hears every client of its sessions (hundreds of clients may
+/// each send a burst of ICE candidates at once). A master is never disconnected for a full
+/// queue: the client whose message filled it is, or (for a message of signaling's own) the
+/// message is dropped.
+const MASTER_SEND_QUEUE_LEN: usize = 4096;
 
 /// A peer that does not accept a frame within this time is disconnected.
 const SEND_TIMEOUT: Duration = Duration::from_secs(10);
@@ -146,23 +151,32 @@ impl SignalState {
         let mut core = self.lock();
         let out = f(&mut core.hub);
         for Outgoing { to, msg, close } in out {
+            let to_master = core.hub.is_master(to);
             let Some(tx) = core.senders.get(&to) else {
                 continue;
             };
-            let mut ok = tx.try_send(Frame::Text(msg.to_json())).is_ok();
+            let limit = if to_master { MASTER_SEND_QUEUE_LEN } else { SEND_QUEUE_LEN };
+            let queued = tx.max_capacity() - tx.capacity();
+            let mut ok = queued < limit && tx.try_send(Frame::Text(msg.to_json())).is_ok();
             if close {
                 ok &= tx.try_send(Frame::Close).is_ok();
             }
             let culprit = match from {
-                Some(sender) if !ok && sender != to => sender,
-                _ => to,
+                Some(sender) if !ok && sender != to => Some(sender),
+                _ if !ok && to_master => None,
+                _ => Some(to),
             };
             if !ok {
-                tracing::warn!(conn = %culprit, recipient = %to, "a send queue is full; disconnecting the connection that filled it");
+                match culprit {
+                    Some(c) => tracing::warn!(conn = %c, recipient = %to, "a send queue is full; disconnecting the connection that filled it"),
+                    None => tracing::warn!(recipient = %to, "a master's send queue is full; dropping a message of signaling's own"),
+                }
             }
-            if !ok || close {
+            if close && ok {
                 // Dropping the sender ends the connection task once its queue drains.
-                core.senders.remove(if ok { &to } else { &culprit });
+                core.senders.remove(&to);
+            } else if let (false, Some(c)) = (ok, culprit) {
+                core.senders.remove(&c);
             }
         }
     }
@@ -218,7 +232,7 @@ async fn upgrade(State(state): State<SignalState>, ws: WebSocketUpgrade, request
 }
 
 async fn run_connection(state: SignalState, conn: ConnId, peer: Option<IpAddr>, mut socket: WebSocket) {
-    let (tx, mut rx) = mpsc::channel(SEND_QUEUE_LEN);
+    let (tx, mut rx) = mpsc::channel(MASTER_SEND_QUEUE_LEN);
     {
         let mut core = state.lock();
         core.senders.insert(conn, tx);
@@ -252,6 +266,15 @@ async fn run_connection(state: SignalState, conn: ConnId, peer: Option<IpAddr>, 
                 Some(Ok(Message::Text(text))) => {
                     (greeted, deadline) = (true, tokio::time::Instant::now() + idle);
                     state.with_hub(Some(conn), |hub| hub.handle_text(conn, text.as_str(), Instant::now()));
+                    // Condemned (rate-limited, unauthorized, flooding a master): say why and
+                    // go, without reading whatever else it has already sent.
+                    if !state.lock().senders.contains_key(&conn) {
+                        while let Ok(Frame::Text(text)) = rx.try_recv() {
+                            let _ = tokio::time::timeout(Duration::from_secs(1), socket.send(Message::Text(text.into()))).await;
+                        }
+                        let _ = tokio::time::timeout(Duration::from_secs(1), socket.send(Message::Close(None))).await;
+                        break;
+                    }
                 }
                 // JSON in a binary frame is tolerated; anything else is a bad message.
                 Some(Ok(Message::Binary(bytes))) => {

@@ -118,6 +118,10 @@ pub enum BenchCommand {
     /// and 45 separate renders) and its i-NGP teacher, per backend in one run; and streaming
     /// stereo (both eyes in one task) against mono at the same total pixels.
     Quilt(super::quilt::QuiltBenchArgs),
+    /// A well-behaved viewer against thousands of idle connections, a relay flood, a 4K
+    /// join/leave loop and an empty-message loop at once, on a `nephele serve` child: its
+    /// frame rate before, during and after, and the server's peak memory.
+    Abuse(super::abuse::AbuseArgs),
 }
 
 /// Runs one `nephele bench` subcommand.
@@ -174,6 +178,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
         BenchCommand::Users(args) => super::users::run(args),
         BenchCommand::Farm(args) => super::farm::run(args),
         BenchCommand::Quilt(args) => super::quilt::run(args),
+        BenchCommand::Abuse(args) => super::abuse::run(args),
     }
 }
 

@@ -1,6 +1,7 @@
 //! The `nephele` command line: one module per group of subcommands, each holding its
 //! arguments and its body; `main.rs` only parses and dispatches.
 
+pub mod abuse;
 pub mod bench;
 pub mod data;
 pub mod farm;
