@@ -49,6 +49,14 @@ pub struct AbuseArgs {
     /// Which attacks run (all four by default).
     #[arg(long, value_delimiter = ',', default_value = "idle,flood,rejoin,empty")]
     pub attacks: Vec<Attack>,
+    /// Frame size of the join → pose → leave loop.
+    #[arg(long, default_value = "3840x2160")]
+    pub rejoin_size: String,
+    /// The server's render scale and admission (its defaults: what a user runs).
+    #[arg(long, default_value = "auto")]
+    pub render_scale: String,
+    #[arg(long, default_value = "load")]
+    pub admission: String,
     /// Niceness of the attacking process (a child of this one): on a real deployment the
     /// attackers are other machines; 0 lets them compete with the server for this one's CPU.
     #[arg(long, default_value_t = 19)]
@@ -66,6 +74,7 @@ struct AttackCounts {
     flood_sent: u64,
     flood_connections: u64,
     rejoins: u64,
+    rejoins_refused: u64,
     empties: u64,
 }
 
@@ -98,6 +107,7 @@ pub struct AbuseReport {
     pub flood_messages_sent: u64,
     pub flood_connections: u64,
     pub rejoin_cycles: u64,
+    pub rejoins_refused: u64,
     pub empty_message_cycles: u64,
     pub viewer_errors: Vec<String>,
 }
@@ -123,8 +133,8 @@ pub fn run(args: AbuseArgs) -> Result<()> {
 pub fn format_report(args: &AbuseArgs, r: &AbuseReport) -> String {
     let mut s = String::new();
     s.push_str(&format!(
-        "viewer {} at {} fps on {}; each phase {} s; attacks {:?} from a child process at nice {}\n\n",
-        args.size, args.fps, args.scene, args.seconds, args.attacks, args.attacker_nice
+        "viewer {} at {} fps on {} (server: render scale {}, admission {}); each phase {} s; attacks {:?} from a child process at nice {}\n\n",
+        args.size, args.fps, args.scene, args.render_scale, args.admission, args.seconds, args.attacks, args.attacker_nice
     ));
     s.push_str("| phase | viewer fps | server RSS MB |\n|---|---:|---:|\n");
     s.push_str(&format!("| before | {:.1} | {:.0} |\n", r.fps_before, r.rss_before_mb));
@@ -135,7 +145,10 @@ pub fn format_report(args: &AbuseArgs, r: &AbuseReport) -> String {
         r.connections_attempted, args.addresses, r.connections_held, r.connections_refused_by_server
     ));
     s.push_str(&format!("relay flood: {} ice messages on {} connections (each rate-limited and dropped)\n", r.flood_messages_sent, r.flood_connections));
-    s.push_str(&format!("4K join → pose → leave cycles: {}; empty-pose-message sessions: {}\n", r.rejoin_cycles, r.empty_message_cycles));
+    s.push_str(&format!(
+        "{} join → pose → leave cycles: {} (and {} joins refused); empty-pose-message sessions: {}\n",
+        args.rejoin_size, r.rejoin_cycles, r.rejoins_refused, r.empty_message_cycles
+    ));
     if !r.viewer_errors.is_empty() {
         s.push_str(&format!("viewer heard: {:?}\n", r.viewer_errors));
     }
@@ -156,10 +169,10 @@ impl Drop for Server {
 }
 
 impl Server {
-    fn start(exe: &std::path::Path, scene: &str) -> Result<Self> {
+    fn start(exe: &std::path::Path, scene: &str, render_scale: &str, admission: &str) -> Result<Self> {
         use std::io::{BufRead, BufReader};
         let mut child = std::process::Command::new(exe)
-            .args(["serve", "--listen", "127.0.0.1:0", "--scene", scene, "--backend", "cpu", "--admission", "open", "--render-scale", "1"])
+            .args(["serve", "--listen", "127.0.0.1:0", "--scene", scene, "--backend", "cpu", "--admission", admission, "--render-scale", render_scale])
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -205,7 +218,7 @@ fn opts(url: &str, width: u32, height: u32, fps: u32) -> ClientOptions {
 pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseReport> {
     let (width, height) = crate::assets::parse_size(&args.size)?;
     let scene = args.scene.split_once('=').map_or(args.scene.clone(), |(_, a)| format!("trio={a}"));
-    let server = Server::start(exe, &scene)?;
+    let server = Server::start(exe, &scene, &args.render_scale, &args.admission)?;
     let url = server.url();
 
     // The viewer: a pose every 20 ms, decoded frames timed.
@@ -263,7 +276,7 @@ pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseRepor
         .arg(args.attacker_nice.to_string())
         .arg(exe)
         .args(["bench", "abuse", "--attack-url", &url, "--seconds", &args.seconds.to_string()])
-        .args(["--connections", &args.connections.to_string(), "--addresses", &args.addresses.to_string()])
+        .args(["--connections", &args.connections.to_string(), "--addresses", &args.addresses.to_string(), "--rejoin-size", &args.rejoin_size])
         .arg("--attacks")
         .arg(args.attacks.iter().map(|a| format!("{a:?}").to_lowercase()).collect::<Vec<_>>().join(","))
         .stdout(std::process::Stdio::piped())
@@ -315,6 +328,7 @@ pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseRepor
         flood_messages_sent: counts.flood_sent,
         flood_connections: counts.flood_connections,
         rejoin_cycles: counts.rejoins,
+        rejoins_refused: counts.rejoins_refused,
         empty_message_cycles: counts.empties,
         viewer_errors,
     })
@@ -333,6 +347,7 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
         tokio::spawn(async move { idle_connections(server, n, addresses, &stop, &held).await })
     };
     let (flood_sent, flood_conns, rejoins, empties) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let rejoins_refused = Arc::new(AtomicU64::new(0));
     if on(Attack::Flood) {
         let (stop, url, sent, conns) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&flood_sent), Arc::clone(&flood_conns));
         tasks.push(tokio::spawn(async move {
@@ -343,16 +358,20 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
         }));
     }
     if on(Attack::Rejoin) {
-        let (stop, url, count) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&rejoins));
+        let (rw, rh) = crate::assets::parse_size(&args.rejoin_size)?;
+        let (stop, url, count, refused) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&rejoins), Arc::clone(&rejoins_refused));
         tasks.push(tokio::spawn(async move {
             while !stop.load(Ordering::Relaxed) {
-                if let Ok(c) = StreamClient::connect(&opts(&url, 3840, 2160, 25)).await {
-                    let _ = c.send_pose(&pose(1, 3840, 2160)).await;
+                let Ok(c) = StreamClient::connect(&opts(&url, rw, rh, 25)).await else {
+                    refused.fetch_add(1, Ordering::Relaxed);
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                };
+                {
+                    let _ = c.send_pose(&pose(1, rw, rh)).await;
                     tokio::time::sleep(Duration::from_millis(100)).await;
                     c.close().await;
                     count.fetch_add(1, Ordering::Relaxed);
-                } else {
-                    tokio::time::sleep(Duration::from_millis(100)).await;
                 }
             }
         }));
@@ -383,6 +402,7 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
         flood_sent: flood_sent.load(Ordering::Relaxed),
         flood_connections: flood_conns.load(Ordering::Relaxed),
         rejoins: rejoins.load(Ordering::Relaxed),
+        rejoins_refused: rejoins_refused.load(Ordering::Relaxed),
         empties: empties.load(Ordering::Relaxed),
     })
 }
