@@ -118,10 +118,14 @@ async fn leaving_cancels_the_render_of_a_4k_frame() {
     assert!(after >= 0.5 * before, "the bystander did not recover: {after:.1} fps after, {before:.1} before");
 }
 
+fn nephele_limits_cap() -> usize {
+    nephele::cli::serve::LimitArgs::default_limits().max_connections
+}
+
 /// All at once, against a `nephele serve` child: 5,000 idle connections from 100 loopback
 /// addresses, a relay flood, a 4K join/leave loop and an empty-message loop. The viewer
-/// keeps streaming and hears nothing, the server stays under 500 MB, and the caps refuse
-/// most of the idle sockets at accept. (Its frame rate kept is measured, not asserted:
+/// keeps streaming and hears nothing, the server stays under 500 MB, and never holds more
+/// sockets than its cap. (Its frame rate kept is measured, not asserted:
 /// `nephele bench abuse` prints it.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_viewer_keeps_streaming_through_four_attacks_at_once() {
@@ -132,6 +136,8 @@ async fn a_viewer_keeps_streaming_through_four_attacks_at_once() {
     assert!(report.viewer_errors.is_empty(), "the viewer heard: {:?}", report.viewer_errors);
     assert!(report.fps_during > 0.0 && report.fps_after > 0.0, "the viewer stopped streaming: {report:?}");
     assert!(report.rss_peak_mb < 500.0, "the server reached {:.0} MB", report.rss_peak_mb);
-    assert!(report.connections_refused_by_server >= 1000, "the caps refused only {} of 5,000 idle sockets", report.connections_refused_by_server);
+    // However far the (low-priority) attacker got, the server never held more than its cap.
+    let cap = nephele_limits_cap();
+    assert!(report.connections_held <= cap, "{} idle sockets held open, the cap is {cap}", report.connections_held);
     assert!(report.rejoin_cycles >= 1 && report.empty_message_cycles >= 1 && report.flood_connections >= 1, "an attack did not run: {report:?}");
 }

@@ -151,7 +151,7 @@ async fn streams_survive_a_signaling_restart() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
     let url = format!("ws://{addr}/signal");
-    let mut signal = Some(spawn_signal_at(&addr));
+    let signal = spawn_signal_at(&addr);
     let scene = format!("trio={}", repo().join("examples/assets/trio-small.nolf").display());
     let _master = Reap(
         nephele()
@@ -212,9 +212,8 @@ async fn streams_survive_a_signaling_restart() {
 
     // Signaling goes away for a second, then comes back on the same address.
     let killed_at = Instant::now();
-    signal = None;
-    tokio::time::sleep(Duration::from_secs(1)).await;
     drop(signal);
+    tokio::time::sleep(Duration::from_secs(1)).await;
     let _signal = spawn_signal_at(&addr);
     let back = loop {
         let sessions = tokio::task::spawn_blocking({

@@ -197,6 +197,11 @@ pub struct LimitArgs {
 }
 
 impl LimitArgs {
+    /// The connection limits `serve` and `signal` use without flags.
+    pub fn default_limits() -> ConnLimits {
+        ConnLimits::default()
+    }
+
     /// Signaling's settings with these limits and `secrets` (token, master token, operator token).
     pub fn hub(&self, token: Option<String>, master_token: Option<String>, operator_token: Option<String>) -> Result<nephele_signaling::HubConfig> {
         let limits = ConnLimits {
