@@ -14,7 +14,6 @@ use std::{
     time::{Duration, Instant},
 };
 
-use glam::Mat4;
 use nephele::{
     client::{ClientOptions, StreamClient, replay::Trace},
     wire::PoseMessage,
@@ -27,14 +26,7 @@ fn client_opts(signal_url: &str, width: u32, height: u32) -> ClientOptions {
 }
 
 fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {
-    let trace = Trace::builtin("orbit").unwrap();
-    PoseMessage {
-        seq,
-        t_client_ms: f64::from(seq) * 20.0,
-        world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
-        intrinsics: trace.intrinsics(width, height),
-        world_from_anchor: None,
-    }
+    Trace::builtin("orbit").unwrap().pose_message(seq, width, height)
 }
 
 /// A client that sends a pose every 20 ms and counts its decoded frames until dropped.

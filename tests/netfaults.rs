@@ -33,12 +33,11 @@ use std::{
     time::{Duration, Instant},
 };
 
-use glam::Mat4;
 use nephele::{
     client::{ClientNet, ClientOptions, POSE_BACKLOG_FREE, ReceiveCounts, StreamClient, replay::Trace},
-    wire::{PoseMessage, ToViewer},
+    wire::ToViewer,
 };
-use nephele_e2e::{Reap, fixture_scene, nephele_bin};
+use nephele_e2e::{Reap, ShowLogOnFailure, fixture_scene, nephele_bin, spawn_serve};
 use nephele_signaling::Mode;
 use tokio::{net::UdpSocket, sync::mpsc};
 use webrtc::{
@@ -160,49 +159,14 @@ impl Drop for Netns {
 /// `nephele serve` in the server's namespace on its veth address, logging into `log`;
 /// returns it with its `host:port`.
 fn spawn_server(ns: &Netns, log: &std::path::Path) -> (Reap, String) {
-    use std::io::{BufRead, BufReader};
-    let bin = nephele_bin();
     let listen = format!("{}:0", ns.server_ip);
     let scene = fixture_scene();
-    let mut child = Command::new("ip")
-        .args(["netns", "exec", &ns.server])
-        .arg(&bin)
-        .args(["serve", "--listen", &listen, "--scene", &scene, "--backend", "cpu", "--render-scale", "1", "--admission", "open", "--capacity", "2"])
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(log).expect("the server's log file"))
-        .spawn()
-        .expect("starting nephele serve in the namespace");
-    let stdout = child.stdout.take().unwrap();
-    let reap = Reap(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut out = BufReader::new(stdout);
-        let mut line = String::new();
-        let _ = out.read_line(&mut line);
-        let _ = tx.send(line);
-        // Keep reading, so the server never writes into a closed pipe.
-        let _ = std::io::copy(&mut out, &mut std::io::sink());
-    });
-    let line = rx.recv_timeout(Duration::from_secs(120)).expect("nephele serve printed nothing within 120 s");
-    let addr = line.split("http://").nth(1).and_then(|s| s.split('/').next()).unwrap_or_else(|| panic!("nephele serve printed {line:?}")).to_string();
-    (reap, addr)
+    let mut cmd = Command::new("ip");
+    cmd.args(["netns", "exec", &ns.server]).arg(nephele_bin());
+    cmd.args(["serve", "--listen", &listen, "--scene", &scene, "--backend", "cpu", "--render-scale", "1", "--admission", "open", "--capacity", "2"]);
+    spawn_serve(cmd, log)
 }
 
-/// Prints the end of the server's log if the test fails.
-struct ShowLogOnFailure(std::path::PathBuf);
-
-impl Drop for ShowLogOnFailure {
-    fn drop(&mut self) {
-        if std::thread::panicking() {
-            let text = std::fs::read_to_string(&self.0).unwrap_or_default();
-            let lines: Vec<&str> = text.lines().collect();
-            eprintln!("--- the last lines of the server's log ---");
-            for l in &lines[lines.len().saturating_sub(60)..] {
-                eprintln!("{l}");
-            }
-        }
-    }
-}
 
 // ---------------------------------------------------------------------------------------
 // Jitter: the client's one UDP socket, every datagram held a random 0..=max
@@ -348,13 +312,7 @@ fn keep_posing(client: Arc<StreamClient>, stop: Arc<AtomicBool>, log: Arc<Log>) 
         while !stop.load(Ordering::Relaxed) {
             tick.tick().await;
             seq += 1;
-            let m = PoseMessage {
-                seq,
-                t_client_ms: f64::from(seq) * 20.0,
-                world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
-                intrinsics: trace.intrinsics(WIDTH, HEIGHT),
-                world_from_anchor: None,
-            };
+            let m = trace.pose_message(seq, WIDTH, HEIGHT);
             if let Err(e) = client.send_pose_paced(&m).await {
                 log.trouble.lock().unwrap().push(format!("sending a pose failed: {e:#}"));
                 return;

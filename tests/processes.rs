@@ -144,10 +144,7 @@ async fn streams_survive_a_signaling_restart() {
         time::{Duration, Instant},
     };
 
-    use nephele::{
-        client::{ClientOptions, StreamClient, replay::Trace},
-        wire::PoseMessage,
-    };
+    use nephele::client::{ClientOptions, StreamClient, replay::Trace};
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
     let url = format!("ws://{addr}/signal");
@@ -193,13 +190,7 @@ async fn streams_survive_a_signaling_restart() {
     let posing = tokio::spawn(async move {
         let trace = Trace::builtin("orbit").unwrap();
         for seq in 1.. {
-            let pose = PoseMessage {
-                seq,
-                t_client_ms: f64::from(seq) * 20.0,
-                world_from_camera: glam::Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
-                intrinsics: trace.intrinsics(160, 120),
-                world_from_anchor: None,
-            };
+            let pose = trace.pose_message(seq, 160, 120);
             if poser.send_pose(&pose).await.is_err() {
                 return;
             }
@@ -239,7 +230,7 @@ async fn streams_survive_a_signaling_restart() {
 
     // Someone new joins through the new signaling.
     let mut second = StreamClient::connect(&opts).await.expect("a new client joins after the restart");
-    let pose = PoseMessage { seq: 1, t_client_ms: 0.0, world_from_camera: glam::Mat4::from_cols_array(&Trace::builtin("orbit").unwrap().poses[0]), intrinsics: Trace::builtin("orbit").unwrap().intrinsics(160, 120), world_from_anchor: None };
+    let pose = Trace::builtin("orbit").unwrap().pose_message(1, 160, 120);
     second.send_pose(&pose).await.unwrap();
     let frame = tokio::time::timeout(Duration::from_secs(20), second.frames.recv()).await;
     assert!(matches!(frame, Ok(Some(_))), "the new client got no frame");

@@ -32,7 +32,6 @@
 use std::{
     collections::BTreeMap,
     net::{IpAddr, Ipv4Addr, SocketAddr},
-    process::Stdio,
     sync::{
         Arc, Mutex,
         atomic::{AtomicBool, AtomicUsize, Ordering},
@@ -41,12 +40,11 @@ use std::{
 };
 
 use futures_util::{SinkExt, StreamExt};
-use glam::Mat4;
 use nephele::{
     client::{ClientNet, ClientOptions, StreamClient, replay::Trace},
     wire::PoseMessage,
 };
-use nephele_e2e::{Reap, nephele, repo};
+use nephele_e2e::{Reap, ShowLogOnFailure, nephele, repo, spawn_serve};
 use nephele_signaling::{Mode, ToClient, ToSignal};
 use tokio::{
     io::{AsyncReadExt, AsyncWriteExt},
@@ -85,47 +83,14 @@ const RSS_RATIO: f64 = 1.10;
 
 /// `nephele serve` on a free loopback port, its log in `log`; returns it with `host:port`.
 fn spawn_server(log: &std::path::Path) -> (Reap, String) {
-    use std::io::{BufRead, BufReader};
     let scene = format!("trio={}", repo().join("examples/assets/trio-small.nolf").display());
     let capacity = CAPACITY.to_string();
-    let mut child = nephele()
-        .args(["serve", "--listen", "127.0.0.1:0", "--scene", &scene, "--backend", "cpu", "--loopback-only"])
-        .args(["--render-scale", "1", "--admission", "open", "--capacity", &capacity])
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(log).expect("the server's log file"))
-        .spawn()
-        .expect("starting nephele serve");
-    let stdout = child.stdout.take().unwrap();
-    let reap = Reap(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut out = BufReader::new(stdout);
-        let mut line = String::new();
-        let _ = out.read_line(&mut line);
-        let _ = tx.send(line);
-        // Keep reading, so the server never writes into a closed pipe.
-        let _ = std::io::copy(&mut out, &mut std::io::sink());
-    });
-    let line = rx.recv_timeout(Duration::from_secs(120)).expect("nephele serve printed nothing within 120 s");
-    let addr = line.split("http://").nth(1).and_then(|s| s.split('/').next()).unwrap_or_else(|| panic!("nephele serve printed {line:?}")).to_string();
-    (reap, addr)
+    let mut cmd = nephele();
+    cmd.args(["serve", "--listen", "127.0.0.1:0", "--scene", &scene, "--backend", "cpu", "--loopback-only"]);
+    cmd.args(["--render-scale", "1", "--admission", "open", "--capacity", &capacity]);
+    spawn_serve(cmd, log)
 }
 
-/// Prints the end of the server's log if the test fails.
-struct ShowLogOnFailure(std::path::PathBuf);
-
-impl Drop for ShowLogOnFailure {
-    fn drop(&mut self) {
-        if std::thread::panicking() {
-            let text = std::fs::read_to_string(&self.0).unwrap_or_default();
-            let lines: Vec<&str> = text.lines().collect();
-            eprintln!("--- the last lines of the server's log ---");
-            for l in &lines[lines.len().saturating_sub(40)..] {
-                eprintln!("{l}");
-            }
-        }
-    }
-}
 
 /// The body of `GET path` (loopback: no operator token needed), `None` on any failure.
 async fn http_get(addr: &str, path: &str) -> Option<String> {
@@ -497,14 +462,7 @@ impl Stats {
 }
 
 fn pose(seq: u32) -> PoseMessage {
-    let trace = Trace::builtin("orbit").unwrap();
-    PoseMessage {
-        seq,
-        t_client_ms: f64::from(seq) * 20.0,
-        world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
-        intrinsics: trace.intrinsics(WIDTH, HEIGHT),
-        world_from_anchor: None,
-    }
+    Trace::builtin("orbit").unwrap().pose_message(seq, WIDTH, HEIGHT)
 }
 
 /// The refusal worth retrying in `error`, if that is what it is: no master with room

@@ -192,3 +192,44 @@ pub fn log_from_env() {
         let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
     }
 }
+
+/// Starts `nephele serve` as `cmd` (already given its arguments), its stderr into `log`, and
+/// waits (up to 120 s) for its "open http://…" line; returns it with its `host:port`.
+pub fn spawn_serve(mut cmd: Command, log: &std::path::Path) -> (Reap, String) {
+    use std::io::{BufRead, BufReader};
+    let mut child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::fs::File::create(log).expect("the server's log file"))
+        .spawn()
+        .expect("starting nephele serve");
+    let stdout = child.stdout.take().unwrap();
+    let reap = Reap(child);
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut out = BufReader::new(stdout);
+        let mut line = String::new();
+        let _ = out.read_line(&mut line);
+        let _ = tx.send(line);
+        // Keep reading, so the server never writes into a closed pipe.
+        let _ = std::io::copy(&mut out, &mut std::io::sink());
+    });
+    let line = rx.recv_timeout(std::time::Duration::from_secs(120)).expect("nephele serve printed nothing within 120 s");
+    let addr = line.split("http://").nth(1).and_then(|s| s.split('/').next()).unwrap_or_else(|| panic!("nephele serve printed {line:?}")).to_string();
+    (reap, addr)
+}
+
+/// Prints the last lines of a server's log file if the test fails.
+pub struct ShowLogOnFailure(pub PathBuf);
+
+impl Drop for ShowLogOnFailure {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            let text = std::fs::read_to_string(&self.0).unwrap_or_default();
+            let lines: Vec<&str> = text.lines().collect();
+            eprintln!("--- the last lines of the server's log ---");
+            for l in &lines[lines.len().saturating_sub(60)..] {
+                eprintln!("{l}");
+            }
+        }
+    }
+}

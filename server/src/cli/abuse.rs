@@ -17,7 +17,6 @@ use std::{
 use anyhow::{Context, Result, bail};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use glam::Mat4;
 use nephele_signaling::Mode;
 use tokio_tungstenite::tungstenite::Message;
 
@@ -200,14 +199,7 @@ impl Server {
 }
 
 fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {
-    let trace = Trace::builtin("orbit").expect("a built-in trace");
-    PoseMessage {
-        seq,
-        t_client_ms: f64::from(seq) * 20.0,
-        world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
-        intrinsics: trace.intrinsics(width, height),
-        world_from_anchor: None,
-    }
+    Trace::builtin("orbit").expect("a built-in trace").pose_message(seq, width, height)
 }
 
 fn opts(url: &str, width: u32, height: u32, fps: u32) -> ClientOptions {

@@ -91,6 +91,18 @@ impl Trace {
         let fy = 0.5 * height as f32 / (0.5 * self.fov_y_deg.to_radians() as f32).tan();
         Intrinsics { fx: fy, fy, cx: 0.5 * width as f32, cy: 0.5 * height as f32, width, height }
     }
+
+    /// Pose message `seq` for a `width`×`height` stream: the trace's pose `seq` (wrapping),
+    /// stamped 20 ms apart.
+    pub fn pose_message(&self, seq: u32, width: u32, height: u32) -> PoseMessage {
+        PoseMessage {
+            seq,
+            t_client_ms: f64::from(seq) * 20.0,
+            world_from_camera: Mat4::from_cols_array(&self.poses[seq as usize % self.poses.len()]),
+            intrinsics: self.intrinsics(width, height),
+            world_from_anchor: None,
+        }
+    }
 }
 
 /// How to replay.
