@@ -9,13 +9,12 @@
 //!   one UDP socket (a wrapper of this test, given to the `webrtc` crate) silently drops
 //!   everything both ways from then on, and its signaling websocket (through a TCP relay of
 //!   this test) is cut without a close frame. The master hears nothing more and gives the
-//!   session up after ~10 s of ICE silence. (Dropping a `StreamClient` is not enough: its
-//!   websocket task keeps the peer connection alive, which keeps answering ICE.)
+//!   session up after ~10 s of ICE silence. (Dropping a `StreamClient` is not the same: it
+//!   closes its peer connection and websocket properly.)
 //! - 1, **join only**: a raw websocket sends `join`, reads `joined`, and is dropped before
 //!   any offer.
 //! - 2, 3, **leave after frames**: waits (at most 2 s) for a decoded frame, then `close()`
-//!   (`leave` on signaling, the peer connection closed), then the websocket closes (the
-//!   relay closes it: `StreamClient::close` leaves it open, its task running).
+//!   (`leave` on signaling, the peer connection and the websocket closed).
 //! - 4, **quick leave**: the same right after the poses, often while a frame renders.
 //!
 //! Every session sends 1–3 poses. Joins refused because the master is full (abrupt sessions
@@ -382,9 +381,8 @@ impl Link {
         }
     }
 
-    /// A clean end: `close()` (`leave` on signaling, the peer connection closed), then the
-    /// websocket closes. `StreamClient::close` leaves its websocket open (its task keeps
-    /// running), so the relay closes it.
+    /// A clean end: `close()` (`leave` on signaling, the peer connection and the websocket
+    /// closed), then this test's relay and socket are released.
     async fn leave(self, client: StreamClient) {
         client.close().await;
         self.release().await;
@@ -616,7 +614,6 @@ async fn wait_threads_settle(pid: u32, limit: Duration) -> Usage {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "fails on its memory check: RSS settles at 1.7-2.4x the baseline, which malloc_trim(0) shows is glibc's arenas keeping freed memory (live memory +0.75 MB over 500 cycles); run with --ignored; issue 15"]
 async fn churn_leaves_no_sessions_threads_fds_or_memory_behind() {
     nephele_e2e::log_from_env();
     let t0 = Instant::now();
@@ -652,8 +649,8 @@ async fn churn_leaves_no_sessions_threads_fds_or_memory_behind() {
     let settle_start = Instant::now();
     let (after, quiet) = wait_quiet(&addr, resting, Duration::from_secs(40)).await;
     let quiet_secs = settle_start.elapsed().as_secs_f64();
-    // Blocking-pool threads idle out 10 s after their last job; an allocator may hand
-    // freed memory back to the system some seconds after the frees (jemalloc's decay).
+    // Blocking-pool threads idle out 10 s after their last job; the master hands freed
+    // memory back to the system (`malloc_trim`) within ~10 s of the last session's end.
     let deadline = Instant::now() + Duration::from_secs(30);
     let rss_limit = (RSS_RATIO * base.rss_kb as f64) as u64;
     let mut end = usage(pid);

@@ -393,3 +393,54 @@ async fn an_empty_pose_message_ends_the_session_and_frees_its_slot() {
     posing.await.unwrap();
     assert!(b_frames.load(Ordering::Relaxed) >= 5, "the next client did not stream");
 }
+
+/// Signaling's `/status` as JSON.
+async fn status(addr: SocketAddr) -> Value {
+    serde_json::from_str(&http_get(addr, "/status").await).unwrap()
+}
+
+/// Open websockets, sessions signaling knows, and sessions its masters report.
+async fn held(addr: SocketAddr) -> (u64, u64, u64) {
+    let s = status(addr).await;
+    let masters = s["masters"].as_array().map_or(0, |m| m.iter().filter_map(|m| m["sessions"].as_u64()).sum());
+    (s["connections"].as_u64().unwrap(), s["sessions"].as_u64().unwrap(), masters)
+}
+
+/// Polls [`held`] until it is `want` (at most `limit`); returns the last value.
+async fn held_until(addr: SocketAddr, limit: Duration, want: (u64, u64, u64)) -> (u64, u64, u64) {
+    let deadline = tokio::time::Instant::now() + limit;
+    loop {
+        let now = held(addr).await;
+        if now == want || tokio::time::Instant::now() >= deadline {
+            return now;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The Rust client used to leak: after `close()` its signaling websocket stayed open (its
+/// task held the peer connection), and a dropped client's peer kept answering ICE, so the
+/// master held its slot forever. Now `close()` closes the websocket, and dropping a client
+/// closes its peer connection, so the master frees the slot at once (a vanished peer would
+/// take the 10 s of ICE silence instead).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_closed_or_dropped_client_frees_its_websocket_and_its_slot() {
+    let (addr, _) = start_server(1).await;
+    let resting = held(addr).await;
+    assert_eq!(resting.1 + resting.2, 0);
+    let a = StreamClient::connect(&client_opts(addr, Mode::Viewer, 160, 120)).await.unwrap();
+    assert_eq!(held(addr).await, (resting.0 + 1, 1, 1), "(websockets, signaling sessions, master sessions) while connected");
+    a.close().await;
+    let now = held_until(addr, Duration::from_secs(3), resting).await;
+    assert_eq!(now, resting, "(websockets, signaling sessions, master sessions) 3 s after close()");
+
+    let b = StreamClient::connect(&client_opts(addr, Mode::Viewer, 160, 120)).await.unwrap();
+    let dropped = tokio::time::Instant::now();
+    drop(b);
+    let now = held_until(addr, Duration::from_secs(5), resting).await;
+    assert_eq!(now, resting, "(websockets, signaling sessions, master sessions) 5 s after the client was dropped");
+    println!("a dropped client's slot was free after {} ms", dropped.elapsed().as_millis());
+    // The slot (capacity 1) takes the next client.
+    let c = StreamClient::connect(&client_opts(addr, Mode::Viewer, 160, 120)).await.expect("the freed slot takes the next client");
+    c.close().await;
+}

@@ -88,6 +88,9 @@ pub struct MarchMeta {
     pub step: f32,
     /// Rays with coarse opacity below this are misses.
     pub alpha_min: f32,
+    /// Which parts of a ray's weight get a network query (absent in older assets: one hit).
+    #[serde(default)]
+    pub hits: crate::model::HitRule,
 }
 
 /// The `nolf` JSON in the safetensors header.
@@ -365,6 +368,7 @@ impl Asset {
         if !(0.0..1.0).contains(&m.alpha_min) {
             return Err(invalid(format!("alpha_min {} outside [0, 1)", m.alpha_min)));
         }
+        m.hits.validate().map_err(invalid)?;
         for (cubes, what, channels) in [(&self.density, "density", 1), (&self.diffuse, "diffuse", 4)] {
             let b = cubes.grid as usize;
             if cubes.channels != channels || cubes.index.len() != b * b * b || cubes.bounds != self.bounds {

@@ -10,6 +10,16 @@
 //!    no later weight can exceed `T`; `α_c` may fall short);
 //! 3. at the hit: diffuse cubes → `c_d`, tint; PSH → E_s; SH4(dir) → E_v; MLP → `c_s`, α;
 //!    `c = clamp(c_d + t·c_s, 0, 1)`, pixel `= α c + (1 − α) bg`.
+//!
+//! **Adaptive multi-hit** (DESIGN §3, beyond the paper; [`HitRule`]): the same march also
+//! splits the weights into segments ([`Segments`]): a sample more than `gap_steps` steps
+//! past the current segment's peak starts a new segment. The segment holding the
+//! max-weight sample is the primary hit (at that sample, exactly the one-hit rule); every
+//! other segment holding at least `τ·α_c` of the weight, heaviest first, gets a query at
+//! its own peak, up to `max_hits` in all. Each query is shaded as in 3 (same `α_c` input),
+//! and the pixel and α are the queries' results blended by segment weight (normalised over
+//! the queried segments). τ = 1 or `max_hits` = 1 is the one-hit renderer, and runs
+//! [`march`] without segment tracking.
 
 use glam::{IVec3, Vec3};
 
@@ -32,11 +42,16 @@ pub struct RenderSettings {
     pub early_stop: f32,
     /// Miss threshold on `α_c`; `None` uses the asset's.
     pub alpha_min: Option<f32>,
+    /// Multi-hit threshold τ and most queries per ray; `None` uses the asset's.
+    #[serde(default)]
+    pub hit_tau: Option<f32>,
+    #[serde(default)]
+    pub max_hits: Option<u32>,
 }
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        Self { step_scale: 1.0, stop_ratio: 0.0, early_stop: 1e-3, alpha_min: None }
+        Self { step_scale: 1.0, stop_ratio: 0.0, early_stop: 1e-3, alpha_min: None, hit_tau: None, max_hits: None }
     }
 }
 
@@ -46,8 +61,49 @@ impl RenderSettings {
             && (0.05..=20.0).contains(&self.step_scale)
             && (0.0..=1.0).contains(&self.stop_ratio)
             && (0.0..1.0).contains(&self.early_stop)
-            && self.alpha_min.is_none_or(|a| (0.0..1.0).contains(&a));
+            && self.alpha_min.is_none_or(|a| (0.0..1.0).contains(&a))
+            && self.hit_tau.is_none_or(|t| (0.0..=1.0).contains(&t))
+            && self.max_hits.is_none_or(|m| (1..=MAX_HITS as u32).contains(&m));
         if ok { Ok(()) } else { Err(format!("render settings out of range: {self:?}")) }
+    }
+
+    /// The asset's hit rule with this render's overrides.
+    pub fn hit_rule(&self, asset: &HitRule) -> HitRule {
+        HitRule { tau: self.hit_tau.unwrap_or(asset.tau), max_hits: self.max_hits.unwrap_or(asset.max_hits), ..*asset }
+    }
+}
+
+/// Most queries one ray can get (the size of the per-ray hit arrays, CPU and GPU).
+pub const MAX_HITS: usize = 3;
+/// Segments remembered while marching; the queried ones are chosen from them at the end.
+pub const MAX_SEGMENTS: usize = 4;
+
+/// Which segments of a ray's weight get a network query (see the module notes).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct HitRule {
+    /// A segment other than the primary is queried if it holds at least `tau · α_c` of the
+    /// weight; 1 = one hit per ray.
+    pub tau: f32,
+    /// Most queries per ray, 1..=[`MAX_HITS`].
+    pub max_hits: u32,
+    /// A sample more than this many steps past the current segment's peak starts a new one.
+    pub gap_steps: f32,
+}
+
+impl Default for HitRule {
+    /// One hit per ray (NEPHELE's i-NOLF).
+    fn default() -> Self {
+        Self { tau: 1.0, max_hits: 1, gap_steps: 3.0 }
+    }
+}
+
+impl HitRule {
+    pub fn one_hit(&self) -> bool {
+        self.tau >= 1.0 || self.max_hits <= 1
+    }
+    pub fn validate(&self) -> Result<(), String> {
+        let ok = (0.0..=1.0).contains(&self.tau) && (1..=MAX_HITS as u32).contains(&self.max_hits) && self.gap_steps.is_finite() && (0.5..=64.0).contains(&self.gap_steps);
+        if ok { Ok(()) } else { Err(format!("hit rule out of range (τ in [0, 1], max_hits 1..={MAX_HITS}, gap_steps 0.5..=64): {self:?}")) }
     }
 }
 
@@ -85,6 +141,141 @@ pub struct MarchHit {
 
 /// Marches the density cubes along `o + t·d` with step `step`.
 pub fn march(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSettings) -> MarchHit {
+    march_with(density, o, d, step, s, &mut ())
+}
+
+/// [`march`], and the ray's queries under `rule` ([`MultiHit`]); with a one-hit rule,
+/// exactly [`march`] with its hit as the only query.
+pub fn march_multi(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSettings, rule: &HitRule) -> MultiHit {
+    if rule.one_hit() {
+        let m = march(density, o, d, step, s);
+        let mut out = MultiHit { march: m, count: u32::from(m.w_max > 0.0), ..Default::default() };
+        (out.t[0], out.beta[0]) = (m.t_hit, 1.0);
+        return out;
+    }
+    let mut segments = Segments::new(rule.gap_steps * step);
+    let m = march_with(density, o, d, step, s, &mut segments);
+    segments.choose(m, rule)
+}
+
+/// What the march tells a hit tracker about each sample.
+pub trait Tracker {
+    /// Sample at `t` of weight `w`; `new_max`: it is the heaviest so far.
+    fn sample(&mut self, t: f32, w: f32, new_max: bool);
+}
+
+/// The one-hit march tracks nothing beyond its own maximum.
+impl Tracker for () {
+    #[inline(always)]
+    fn sample(&mut self, _t: f32, _w: f32, _new_max: bool) {}
+}
+
+/// A run of samples: its summed weight and its heaviest sample.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Segment {
+    pub weight: f32,
+    pub peak_w: f32,
+    pub peak_t: f32,
+}
+
+/// The segment tracker of the multi-hit rule: at most [`MAX_SEGMENTS`] closed segments (when
+/// full, the lightest one that is not the primary gives way), the open one, and which one
+/// holds the max-weight sample.
+#[derive(Debug, Clone)]
+pub struct Segments {
+    gap_t: f32,
+    closed: [Segment; MAX_SEGMENTS],
+    n_closed: usize,
+    open: Option<Segment>,
+    open_is_primary: bool,
+    primary: Option<usize>,
+}
+
+impl Segments {
+    /// `gap_t`: the gap in ray-parameter units (`gap_steps · δ`).
+    pub fn new(gap_t: f32) -> Self {
+        Self { gap_t, closed: [Segment::default(); MAX_SEGMENTS], n_closed: 0, open: None, open_is_primary: false, primary: None }
+    }
+
+    fn close(&mut self) {
+        let Some(seg) = self.open.take() else { return };
+        let is_primary = std::mem::take(&mut self.open_is_primary);
+        let slot = if self.n_closed < MAX_SEGMENTS {
+            self.n_closed += 1;
+            Some(self.n_closed - 1)
+        } else {
+            // Full: the lightest closed segment that is not the primary gives way, if it is
+            // lighter than this one (or this one is the primary).
+            let lightest = (0..MAX_SEGMENTS).filter(|&i| Some(i) != self.primary).min_by(|&a, &b| self.closed[a].weight.total_cmp(&self.closed[b].weight)).expect("at most one primary");
+            (is_primary || self.closed[lightest].weight < seg.weight).then_some(lightest)
+        };
+        if let Some(i) = slot {
+            self.closed[i] = seg;
+            if is_primary {
+                self.primary = Some(i);
+            }
+        }
+    }
+
+    /// The queries under `rule`, from the march's result `m`.
+    pub fn choose(mut self, m: MarchHit, rule: &HitRule) -> MultiHit {
+        self.close();
+        let mut out = MultiHit { march: m, ..Default::default() };
+        let Some(p) = self.primary else { return out };
+        let mut chosen = [self.closed[p]; MAX_HITS];
+        let mut n = 1;
+        let mut rest: Vec<Segment> = (0..self.n_closed).filter(|&i| i != p).map(|i| self.closed[i]).collect();
+        rest.sort_by(|a, b| b.weight.total_cmp(&a.weight));
+        for seg in rest {
+            if n >= rule.max_hits as usize || seg.weight < rule.tau * m.alpha_c {
+                break;
+            }
+            chosen[n] = seg;
+            n += 1;
+        }
+        let total: f32 = chosen[..n].iter().map(|s| s.weight).sum();
+        for (i, seg) in chosen[..n].iter().enumerate() {
+            out.t[i] = seg.peak_t;
+            out.beta[i] = if total > 0.0 { seg.weight / total } else { 1.0 / n as f32 };
+        }
+        out.count = n as u32;
+        out
+    }
+}
+
+impl Tracker for Segments {
+    #[inline]
+    fn sample(&mut self, t: f32, w: f32, new_max: bool) {
+        if w.is_nan() || w <= 0.0 {
+            return;
+        }
+        if self.open.is_some_and(|o| t - o.peak_t > self.gap_t) {
+            self.close();
+        }
+        let open = self.open.get_or_insert(Segment { weight: 0.0, peak_w: 0.0, peak_t: t });
+        open.weight += w;
+        if w > open.peak_w {
+            (open.peak_w, open.peak_t) = (w, t);
+        }
+        if new_max {
+            self.open_is_primary = true;
+            self.primary = None;
+        }
+    }
+}
+
+/// A ray's queries: `count` hits at `t[i]` blended by `beta[i]` (summing to 1), the first
+/// being the max-weight sample, with the march's result.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct MultiHit {
+    pub march: MarchHit,
+    pub t: [f32; MAX_HITS],
+    pub beta: [f32; MAX_HITS],
+    pub count: u32,
+}
+
+/// [`march`] reporting every sample to `tracker`.
+pub fn march_with<T: Tracker>(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSettings, tracker: &mut T) -> MarchHit {
     let mut out = MarchHit::default();
     let Some((t0, t1)) = clip_ray(&density.bounds, o, d) else { return out };
     let b = density.grid as i32;
@@ -123,10 +314,12 @@ pub fn march(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSett
                 let sigma = density.sample_in_brick::<1>(brick as usize, cell_f, density.to_fine(o + t * d))[0];
                 let alpha = 1.0 - (-sigma * step).exp();
                 let w = transmittance * alpha;
-                if w > w_max {
+                let new_max = w > w_max;
+                if new_max {
                     w_max = w;
                     t_hit = t;
                 }
+                tracker.sample(t, w, new_max);
                 transmittance *= 1.0 - alpha;
                 samples += 1;
                 if transmittance < s.stop_ratio * w_max || transmittance < s.early_stop {
@@ -165,6 +358,18 @@ pub fn shade(asset: &Asset, net: &crate::mlp::MlpKernel, p_hit: Vec3, d: Vec3, a
     (alpha * c + (1.0 - alpha) * bg, alpha)
 }
 
+/// Shades a ray's queries (`o + t[i]·d`) and blends them by segment weight: returns
+/// `(rgb over bg, α)`.
+pub fn shade_multi(asset: &Asset, net: &crate::mlp::MlpKernel, hits: &MultiHit, o: Vec3, d: Vec3, bg: Vec3) -> (Vec3, f32) {
+    let (mut rgb, mut alpha) = (Vec3::ZERO, 0.0);
+    for i in 0..hits.count as usize {
+        let (c, a) = shade(asset, net, o + hits.t[i] * d, d, hits.march.alpha_c, bg);
+        rgb += hits.beta[i] * c;
+        alpha += hits.beta[i] * a;
+    }
+    (rgb, alpha)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -184,5 +389,73 @@ mod tests {
         if let Some((t0, t1)) = clip_ray(&b, Vec3::new(1.0, 1.0, 5.0), Vec3::new(0.0, 0.0, -1.0)) {
             assert!(t0.is_finite() && t1.is_finite());
         }
+    }
+
+    /// Feeds `(t, w)` samples to a [`Segments`] tracker as the march would, and chooses.
+    fn segments_of(samples: &[(f32, f32)], rule: &HitRule) -> MultiHit {
+        let mut seg = Segments::new(rule.gap_steps);
+        let (mut w_max, mut t_hit, mut total) = (0.0f32, 0.0, 0.0);
+        for &(t, w) in samples {
+            let new_max = w > w_max;
+            if new_max {
+                (w_max, t_hit) = (w, t);
+            }
+            total += w;
+            seg.sample(t, w, new_max);
+        }
+        seg.choose(MarchHit { t_hit, alpha_c: total, w_max, samples: samples.len() as u32 }, rule)
+    }
+
+    fn rule(tau: f32, max_hits: u32) -> HitRule {
+        HitRule { tau, max_hits, gap_steps: 3.0 }
+    }
+
+    #[test]
+    fn segments_split_at_gaps_and_the_primary_is_the_heaviest_sample() {
+        // Two surfaces 10 steps apart (t in steps): a thin heavy one, then a thick light one
+        // whose summed weight is larger.
+        let samples = [(0.0, 0.5), (1.0, 0.1), (10.0, 0.05), (11.0, 0.2), (12.0, 0.15), (13.0, 0.1)];
+        let m = segments_of(&samples, &rule(0.1, 3));
+        assert_eq!(m.count, 2);
+        assert_eq!(m.t[0], 0.0, "the primary query is at the max-weight sample");
+        assert_eq!(m.t[1], 11.0, "the second at its segment's peak");
+        assert!((m.beta[0] - 0.6 / 1.1).abs() < 1e-6 && (m.beta[1] - 0.5 / 1.1).abs() < 1e-6, "{m:?}");
+        // τ above the second segment's share (0.5 / 1.1): one query; τ = 1 likewise.
+        assert_eq!(segments_of(&samples, &rule(0.5, 3)).count, 1);
+        assert_eq!(segments_of(&samples, &rule(1.0, 3)).count, 1);
+        // Within the gap, one segment: a thick shell is one hit until it runs past the gap.
+        let shell = [(0.0, 0.3), (1.0, 0.2), (2.0, 0.15), (3.0, 0.1), (4.0, 0.08), (5.0, 0.06)];
+        let m = segments_of(&shell, &rule(0.1, 3));
+        assert_eq!((m.count, m.t[0], m.t[1]), (2, 0.0, 4.0), "the tail past 3 steps is its own segment: {m:?}");
+    }
+
+    #[test]
+    fn segments_stay_bounded_and_keep_the_primary() {
+        // 40 separate specks, the heaviest in the middle, then heavier ones later: the tracker
+        // holds at most MAX_SEGMENTS, keeps the primary, and queries the heaviest others.
+        let mut samples: Vec<(f32, f32)> = (0..40).map(|k| (10.0 * k as f32, 0.01 + 0.001 * k as f32)).collect();
+        samples[20].1 = 0.5;
+        let m = segments_of(&samples, &rule(0.0, 3));
+        assert_eq!(m.count, 3);
+        assert_eq!(m.t[0], 200.0);
+        assert_eq!((m.t[1], m.t[2]), (390.0, 380.0), "{m:?}");
+        assert!((m.beta.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+        assert!(m.beta.iter().all(|b| b.is_finite() && *b >= 0.0));
+        // No weight at all: no query; zero, negative and NaN weights are ignored.
+        assert_eq!(segments_of(&[], &rule(0.0, 3)).count, 0);
+        assert_eq!(segments_of(&[(0.0, 0.0), (1.0, f32::NAN), (2.0, -1.0)], &rule(0.0, 3)).count, 0);
+        // One sample: one query of weight 1.
+        let m = segments_of(&[(5.0, 1e-30)], &rule(0.0, 3));
+        assert_eq!((m.count, m.t[0], m.beta[0]), (1, 5.0, 1.0));
+    }
+
+    #[test]
+    fn hit_rules_are_checked() {
+        assert!(HitRule::default().validate().is_ok() && HitRule::default().one_hit());
+        for bad in [rule(-0.1, 2), rule(1.5, 2), rule(f32::NAN, 2), rule(0.1, 0), rule(0.1, MAX_HITS as u32 + 1), HitRule { gap_steps: f32::INFINITY, ..rule(0.1, 2) }] {
+            assert!(bad.validate().is_err(), "{bad:?}");
+        }
+        let s = RenderSettings { hit_tau: Some(2.0), ..Default::default() };
+        assert!(s.validate().is_err());
     }
 }

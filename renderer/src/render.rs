@@ -93,6 +93,8 @@ pub struct RenderStats {
     pub hits: u64,
     /// Density samples taken (CPU backend only; 0 where not counted).
     pub samples: u64,
+    /// Network queries (≥ `hits`; more with multi-hit; 0 where not counted).
+    pub queries: u64,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -233,14 +235,15 @@ impl PreparedAsset for CpuPrepared {
         };
         // Pass 1: march every ray of every view (a cancelled render stops within one ray per
         // thread: the collect short-circuits on the first `None`).
-        let marched: Vec<model::MarchHit> = (0..total)
+        let rule = settings.hit_rule(&asset.march.hits);
+        let marched: Vec<model::MultiHit> = (0..total)
             .into_par_iter()
             .map(|i| {
                 if cancel.is_cancelled() {
                     return None;
                 }
                 let (_, (o, d)) = ray(i);
-                Some(model::march(&asset.density, o, d, step, settings))
+                Some(model::march_multi(&asset.density, o, d, step, settings, &rule))
             })
             .collect::<Option<_>>()
             .ok_or(RenderError::Cancelled)?;
@@ -253,22 +256,27 @@ impl PreparedAsset for CpuPrepared {
             .map(|(i, m)| {
                 let (v, (o, d)) = ray(i as u64);
                 let (req, f) = (&views[v], &frames_setup[v]);
-                if m.alpha_c < alpha_min {
+                if m.march.alpha_c < alpha_min {
                     let bg = req.background;
                     return Some(([to_unorm8(bg.x), to_unorm8(bg.y), to_unorm8(bg.z), 0], f32::INFINITY));
                 }
                 if cancel.is_cancelled() {
                     return None;
                 }
-                let (rgb, a) = model::shade(asset, &self.1, o + m.t_hit * d, d, m.alpha_c, req.background);
-                Some(([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.t_hit) * f.scale))
+                let (rgb, a) = if m.count == 1 {
+                    model::shade(asset, &self.1, o + m.t[0] * d, d, m.march.alpha_c, req.background)
+                } else {
+                    model::shade_multi(asset, &self.1, m, o, d, req.background)
+                };
+                Some(([to_unorm8(rgb.x), to_unorm8(rgb.y), to_unorm8(rgb.z), to_unorm8(a)], (f.t_shift + m.march.t_hit) * f.scale))
             })
             .collect::<Option<_>>()
             .ok_or(RenderError::Cancelled)?;
         let mut stats = RenderStats {
             rays: total,
             hits: shaded.iter().filter(|s| s.1.is_finite()).count() as u64,
-            samples: marched.iter().map(|m| m.samples as u64).sum::<u64>(),
+            samples: marched.iter().map(|m| m.march.samples as u64).sum::<u64>(),
+            queries: marched.iter().zip(&shaded).filter(|(_, s)| s.1.is_finite()).map(|(m, _)| m.count as u64).sum::<u64>(),
             ..Default::default()
         };
         let frames = frames_setup

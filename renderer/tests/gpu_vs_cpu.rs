@@ -69,9 +69,6 @@ fn random_rays() {
             ViewRequest::new(View::look_at(eye, target, DVec3::Z, k)).with_background(Vec3::new(rng.random(), rng.random(), rng.random()))
         })
         .collect();
-    let settings = RenderSettings::default();
-    let cpu = CpuBackend.prepare(asset.clone()).unwrap().render(&views, &settings).unwrap();
-    let out = gpu.prepare(asset.clone()).unwrap().render(&views, &settings).unwrap();
     // Pool all rays into one comparison.
     let pool = |frames: &[nephele_renderer::Frame]| nephele_renderer::Frame {
         width: frames.iter().map(|f| f.width * f.height).sum(),
@@ -79,9 +76,19 @@ fn random_rays() {
         rgba: frames.iter().flat_map(|f| f.rgba.iter().copied()).collect(),
         depth: frames.iter().flat_map(|f| f.depth.iter().copied()).collect(),
     };
-    let d = common::diff(&pool(&cpu.frames), &pool(&out.frames), 4, 2.0 * asset.march.step);
-    assert!(cpu.stats.hits > 500, "too few random rays hit ({})", cpu.stats.hits);
-    check("random rays", &d);
+    // One hit per ray, and up to three (τ small, so most rays through several parts get
+    // more than one query).
+    for settings in [RenderSettings::default(), RenderSettings { hit_tau: Some(0.02), max_hits: Some(3), ..Default::default() }] {
+        let cpu = CpuBackend.prepare(asset.clone()).unwrap().render(&views, &settings).unwrap();
+        let out = gpu.prepare(asset.clone()).unwrap().render(&views, &settings).unwrap();
+        let d = common::diff(&pool(&cpu.frames), &pool(&out.frames), 4, 2.0 * asset.march.step);
+        assert!(cpu.stats.hits > 500, "too few random rays hit ({})", cpu.stats.hits);
+        eprintln!("{} queries for {} hit rays", cpu.stats.queries, cpu.stats.hits);
+        if settings.max_hits.is_some() {
+            assert!(cpu.stats.queries as f64 > 1.05 * cpu.stats.hits as f64, "the multi-hit rule should add queries: {:?}", cpu.stats);
+        }
+        check(&format!("random rays, {settings:?}"), &d);
+    }
 }
 
 #[test]
@@ -93,6 +100,8 @@ fn settings_knobs_reach_the_gpu() {
         RenderSettings { step_scale: 2.0, ..Default::default() },
         RenderSettings { stop_ratio: 1.0, ..Default::default() },
         RenderSettings { alpha_min: Some(0.5), ..Default::default() },
+        RenderSettings { hit_tau: Some(0.02), max_hits: Some(3), ..Default::default() },
+        RenderSettings { hit_tau: Some(0.02), max_hits: Some(2), step_scale: 0.5, ..Default::default() },
     ] {
         let c = CpuBackend.prepare(asset.clone()).unwrap().render(&view, &settings).unwrap();
         let g = gpu.prepare(asset.clone()).unwrap().render(&view, &settings).unwrap();

@@ -1,7 +1,7 @@
 //! Every WGSL kernel parses and validates with naga (no GPU needed), and the Rust mirrors of
 //! its structs have the sizes naga computes.
 
-use nephele_renderer::gpu::{GpuView, Params, compose::{COMPOSE_WGSL, ComposeParams}, kernel_sources};
+use nephele_renderer::gpu::{GpuView, HIT_BYTES, Params, compose::{COMPOSE_WGSL, ComposeParams}, kernel_sources};
 
 #[test]
 fn kernels_validate_and_structs_match() {
@@ -16,7 +16,7 @@ fn kernels_validate_and_structs_match() {
         };
         assert_eq!(size_of("Params") as usize, std::mem::size_of::<Params>(), "{name}: Params");
         assert_eq!(size_of("View") as usize, std::mem::size_of::<GpuView>(), "{name}: View");
-        assert_eq!(size_of("Hit"), 16, "{name}: Hit");
+        assert_eq!(size_of("Hit") as u64, HIT_BYTES, "{name}: Hit");
     }
 }
 

@@ -17,7 +17,7 @@ struct Params {
     offset_edge: u32, features: u32, feature_words: u32, mlp_input: u32,
     off_density_index: u32, off_diffuse_index: u32, off_psh_keys: u32, off_psh_offsets: u32,
     off_psh_values: u32, off_mlp: u32, view_count: u32, chunk_start: u32,
-    chunk_len: u32, _pad0: u32, _pad1: u32, _pad2: u32,
+    chunk_len: u32, hit_tau: f32, max_hits: u32, hit_gap: f32,
 }
 
 struct View {
@@ -29,11 +29,15 @@ struct View {
     background: vec3<f32>, height: u32,
 }
 
+// A hit ray: its primary query at `t_hit` and up to two more at `t_more` with blend weights
+// `beta_more` (0 when absent); the primary's weight is 1 − their sum (model.rs `MultiHit`).
 struct Hit {
     pixel: u32,
     view: u32,
     t_hit: f32,
     alpha_c: f32,
+    t_more: vec2<f32>,
+    beta_more: vec2<f32>,
 }
 
 struct Counter {

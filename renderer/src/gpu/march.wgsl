@@ -1,7 +1,8 @@
 // march.wgsl — i-NOLF pass 1 (DESIGN §3 steps 1–3): clip each pixel's ray to the box, DDA over
 // the density index grid, fixed-step samples of the density atlas (hardware trilinear), the
-// max-weight hit and coarse opacity with the exact early stop. Misses get the background;
-// hits are appended to `hits` for the shading pass. Mirrors `model::march`.
+// max-weight hit and coarse opacity with the exact early stop, and with `max_hits` > 1 the
+// multi-hit segments. Misses get the background; hits are appended to `hits` for the shading
+// pass. Mirrors `model::march_with` and `model::Segments`.
 
 // Density at `p`, read from `brick` whose atlas texel origin is `origin` and whose index cell
 // is `cell` (model.rs `sample_in_brick`).
@@ -22,7 +23,65 @@ struct March {
     alpha_c: f32,
 }
 
-fn march(o_in: vec3<f32>, d_in: vec3<f32>) -> March {
+// The multi-hit segment tracker (model.rs `Segments`): closed segments (summed weight, peak
+// t), the open one, and which one holds the max-weight sample.
+struct Segments {
+    w: array<f32, 4>,
+    t: array<f32, 4>,
+    n_closed: u32,
+    primary: i32,
+    has_open: bool,
+    open_primary: bool,
+    open_w: f32,
+    open_peak_w: f32,
+    open_peak_t: f32,
+}
+
+fn seg_close(s: ptr<function, Segments>) {
+    if !(*s).has_open { return; }
+    (*s).has_open = false;
+    let is_primary = (*s).open_primary;
+    (*s).open_primary = false;
+    var slot = -1;
+    if (*s).n_closed < 4u {
+        slot = i32((*s).n_closed);
+        (*s).n_closed += 1u;
+    } else {
+        // The lightest closed segment that is not the primary gives way.
+        var lightest = -1;
+        for (var i = 0; i < 4; i++) {
+            if i != (*s).primary && (lightest < 0 || (*s).w[i] < (*s).w[lightest]) { lightest = i; }
+        }
+        if is_primary || (*s).w[lightest] < (*s).open_w { slot = lightest; }
+    }
+    if slot >= 0 {
+        (*s).w[slot] = (*s).open_w;
+        (*s).t[slot] = (*s).open_peak_t;
+        if is_primary { (*s).primary = slot; }
+    }
+}
+
+fn seg_sample(s: ptr<function, Segments>, t: f32, w: f32, new_max: bool) {
+    if !(w > 0.0) { return; }
+    if (*s).has_open && t - (*s).open_peak_t > params.hit_gap { seg_close(s); }
+    if !(*s).has_open {
+        (*s).has_open = true;
+        (*s).open_w = 0.0;
+        (*s).open_peak_w = 0.0;
+        (*s).open_peak_t = t;
+    }
+    (*s).open_w += w;
+    if w > (*s).open_peak_w {
+        (*s).open_peak_w = w;
+        (*s).open_peak_t = t;
+    }
+    if new_max {
+        (*s).open_primary = true;
+        (*s).primary = -1;
+    }
+}
+
+fn march(o_in: vec3<f32>, d_in: vec3<f32>, segs: ptr<function, Segments>) -> March {
     var o = o_in;
     var d = d_in;
     var res = March(0.0, 0.0);
@@ -82,10 +141,12 @@ fn march(o_in: vec3<f32>, d_in: vec3<f32>) -> March {
                 let sigma = density_in_brick(origin, cell_f, o + t * d);
                 let alpha = 1.0 - exp(-sigma * step);
                 let w = transmittance * alpha;
-                if w > w_max {
+                let new_max = w > w_max;
+                if new_max {
                     w_max = w;
                     t_hit = t;
                 }
+                if params.max_hits > 1u { seg_sample(segs, t, w, new_max); }
                 transmittance *= 1.0 - alpha;
                 if transmittance < params.stop_ratio * w_max || transmittance < params.early_stop {
                     done = true;
@@ -112,13 +173,42 @@ fn march_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     if local >= params.chunk_len { return; }
     let vi = find_view(params.chunk_start + local);
     let ray = ray_of_pixel(local, vi);
-    let m = march(ray.o, ray.d);
+    var segs: Segments;
+    segs.n_closed = 0u;
+    segs.primary = -1;
+    segs.has_open = false;
+    segs.open_primary = false;
+    let m = march(ray.o, ray.d, &segs);
     if m.alpha_c < params.alpha_min {
         out_pixels[local] = vec2<u32>(pack4x8unorm(vec4<f32>(views[vi].background, 0.0)), bitcast<u32>(-1.0));
         return;
     }
+    // The queries beyond the primary: heaviest other segments holding ≥ τ·α_c, up to
+    // `max_hits` in all, blended by weight (model.rs `Segments::choose`).
+    var t_more = vec2<f32>(0.0);
+    var w_more = vec2<f32>(0.0);
+    var w_total = 1.0;
+    if params.max_hits > 1u {
+        seg_close(&segs);
+        if segs.primary >= 0 {
+            w_total = segs.w[segs.primary];
+            var taken = array<bool, 4>(false, false, false, false);
+            taken[segs.primary] = true;
+            for (var k = 0u; k + 1u < params.max_hits && k < 2u; k++) {
+                var best = -1;
+                for (var i = 0; i < i32(segs.n_closed); i++) {
+                    if !taken[i] && (best < 0 || segs.w[i] > segs.w[best]) { best = i; }
+                }
+                if best < 0 || segs.w[best] < params.hit_tau * m.alpha_c { break; }
+                taken[best] = true;
+                t_more[k] = segs.t[best];
+                w_more[k] = segs.w[best];
+                w_total += segs.w[best];
+            }
+        }
+    }
     let slot = atomicAdd(&counter.hits, 1u);
-    hits[slot] = Hit(local, vi, m.t_hit, m.alpha_c);
+    hits[slot] = Hit(local, vi, m.t_hit, m.alpha_c, t_more, w_more / w_total);
 }
 
 // One thread: turn the hit count into an indirect dispatch for the shading pass.

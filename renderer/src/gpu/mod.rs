@@ -32,7 +32,7 @@ pub fn kernel_sources() -> [(&'static str, String); 2] {
     [("march", format!("{COMMON_WGSL}\n{MARCH_WGSL}")), ("shade", format!("{COMMON_WGSL}\n{SHADE_WGSL}"))]
 }
 
-/// Pixels per chunk: bounds the hit list and output buffers (16 B + 8 B per pixel).
+/// Pixels per chunk: bounds the hit list and output buffers (32 B + 8 B per pixel).
 const CHUNK_PIXELS: u32 = 1 << 22;
 
 /// Keep in sync with `Params` in common.wgsl.
@@ -68,7 +68,10 @@ pub struct Params {
     pub view_count: u32,
     pub chunk_start: u32,
     pub chunk_len: u32,
-    pub _pad: [u32; 3],
+    /// The multi-hit rule (`model::HitRule`); `hit_gap` in ray-parameter units.
+    pub hit_tau: f32,
+    pub max_hits: u32,
+    pub hit_gap: f32,
 }
 const _: () = assert!(std::mem::size_of::<Params>() == 176);
 
@@ -91,7 +94,7 @@ pub struct GpuView {
 const _: () = assert!(std::mem::size_of::<GpuView>() == 96);
 
 /// Bytes of `Hit` in common.wgsl.
-const HIT_BYTES: u64 = 16;
+pub const HIT_BYTES: u64 = 32;
 
 /// An adapter, device and the compiled kernels.
 pub struct GpuContext {
@@ -330,7 +333,9 @@ impl Backend for GpuBackend {
             view_count: 0,
             chunk_start: 0,
             chunk_len: 0,
-            _pad: [0; 3],
+            hit_tau: 1.0,
+            max_hits: 1,
+            hit_gap: 0.0,
         };
         Ok(Box::new(GpuPrepared { ctx, asset, words, mlp, density, diffuse, base, scratch: Default::default() }))
     }
@@ -440,6 +445,7 @@ impl PreparedAsset for GpuPrepared {
         let ctx = &*self.ctx;
         let dev = &ctx.device;
         let a = &*self.asset;
+        let rule = settings.hit_rule(&a.march.hits);
         let start = Instant::now();
         let mut gpu_views = Vec::with_capacity(views.len());
         let mut total: u64 = 0;
@@ -486,6 +492,9 @@ impl PreparedAsset for GpuPrepared {
                 alpha_min: settings.alpha_min.unwrap_or(a.march.alpha_min),
                 stop_ratio: settings.stop_ratio,
                 early_stop: settings.early_stop,
+                hit_tau: rule.tau,
+                max_hits: if rule.one_hit() { 1 } else { rule.max_hits },
+                hit_gap: rule.gap_steps * a.march.step * settings.step_scale,
                 view_count: views.len() as u32,
                 chunk_start,
                 chunk_len,

@@ -1,7 +1,8 @@
 // shade.wgsl — i-NOLF pass 2 (DESIGN §3 steps 4–8), one thread per hit ray only: diffuse
 // atlas (hardware trilinear) → c_d and tint; perfect spatial hash (Lefebvre & Hoppe 2006)
 // → E_s; SH degree 4 → E_v; specular MLP [E_s, E_v, α_c] → 64 → 64 → 4; composite over the
-// view's background. Mirrors `model::shade`.
+// view's background; a multi-hit ray's queries are blended by their weights. Mirrors
+// `model::shade` and `model::shade_multi`.
 
 fn psh_find(p: vec3<u32>) -> i32 {
     let m = params.table_edge;
@@ -34,16 +35,8 @@ fn sigmoid(x: f32) -> f32 {
     return 1.0 / (1.0 + exp(-x));
 }
 
-@compute @workgroup_size(64)
-fn shade_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = linear_id(gid, nwg);
-    if i >= atomicLoad(&counter.hits) { return; }
-    let h = hits[i];
-    let v = views[h.view];
-    let ray = ray_of_pixel(h.pixel, h.view);
-    let p = ray.o + h.t_hit * ray.d;
-    let d = ray.d;
-
+// One query at `p`: (rgb over `bg`, α).
+fn query(p: vec3<f32>, d: vec3<f32>, alpha_c: f32, bg: vec3<f32>) -> vec4<f32> {
     var x: array<f32, 64>;
     // E_s: trilinear blend of the 8 PSH corners; absent vertices are zero.
     let nf = params.features;
@@ -86,7 +79,7 @@ fn shade_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     x[nf + 13u] = 0.45704579946446572 * d.x * (1.0 - 5.0 * zz);
     x[nf + 14u] = 1.4453057213202769 * d.z * (xx - yy);
     x[nf + 15u] = 0.59004358992664352 * d.x * (-xx + 3.0 * yy);
-    x[nf + 16u] = h.alpha_c;
+    x[nf + 16u] = alpha_c;
 
     // Specular MLP in vec4s: w0 (64 rows × in4), b0 (16), w1 (64 × 16), b1 (16), w2 (4 × 16), b2 (1).
     let in4 = (params.mlp_input + 3u) / 4u;
@@ -121,6 +114,23 @@ fn shade_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let alpha = sigmoid(o.w);
     let cd = diffuse_at(p);
     let c = clamp(cd.rgb + cd.a * c_s, vec3<f32>(0.0), vec3<f32>(1.0));
-    let rgb = alpha * c + (1.0 - alpha) * v.background;
-    out_pixels[h.pixel] = vec2<u32>(pack4x8unorm(vec4<f32>(rgb, alpha)), bitcast<u32>((v.t_shift + h.t_hit) * v.scale));
+    return vec4<f32>(alpha * c + (1.0 - alpha) * bg, alpha);
+}
+
+@compute @workgroup_size(64)
+fn shade_main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg);
+    if i >= atomicLoad(&counter.hits) { return; }
+    let h = hits[i];
+    let v = views[h.view];
+    let ray = ray_of_pixel(h.pixel, h.view);
+    var px = query(ray.o + h.t_hit * ray.d, ray.d, h.alpha_c, v.background);
+    if h.beta_more.x > 0.0 {
+        px *= 1.0 - h.beta_more.x - h.beta_more.y;
+        px += h.beta_more.x * query(ray.o + h.t_more.x * ray.d, ray.d, h.alpha_c, v.background);
+        if h.beta_more.y > 0.0 {
+            px += h.beta_more.y * query(ray.o + h.t_more.y * ray.d, ray.d, h.alpha_c, v.background);
+        }
+    }
+    out_pixels[h.pixel] = vec2<u32>(pack4x8unorm(px), bitcast<u32>((v.t_shift + h.t_hit) * v.scale));
 }

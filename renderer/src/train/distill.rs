@@ -90,6 +90,10 @@ pub struct DistillConfig {
     pub specular_hash_grid: Option<HashGridConfig>,
     /// Coarse opacity below which a ray is a miss.
     pub alpha_min: f32,
+    /// The multi-hit rule the student is trained for and the asset renders with
+    /// ([`model::HitRule`]; absent in older checkpoints: one hit).
+    #[serde(default)]
+    pub hits: model::HitRule,
     pub steps: u64,
     pub rays_per_batch: usize,
     pub rays_per_chunk: usize,
@@ -134,6 +138,7 @@ impl DistillConfig {
             diffuse_net: true,
             specular_hash_grid: None,
             alpha_min: 0.02,
+            hits: model::HitRule::default(),
             steps,
             rays_per_batch: 8192,
             rays_per_chunk: 128,
@@ -184,6 +189,7 @@ impl DistillConfig {
         if !(2..=crate::psh::MAX_COORD).contains(&self.psh_grid) || !(1..=32).contains(&self.psh_features) || self.psh_dilation > 4 {
             return Err(format!("PSH grid {} / features {} / dilation {} out of range", self.psh_grid, self.psh_features, self.psh_dilation));
         }
+        self.hits.validate()?;
         if !(0.0..1.0).contains(&self.alpha_min) || !(0.0..1.0).contains(&self.min_step_opacity) {
             return Err("alpha_min and min_step_opacity must be in [0, 1)".into());
         }
@@ -198,6 +204,10 @@ impl DistillConfig {
 
     /// March step δ for cubes over `bounds`: a fine density cell along the longest axis over
     /// `samples_per_cell`.
+    pub fn hit_rule(&self) -> model::HitRule {
+        self.hits
+    }
+
     pub fn step(&self, bounds: &Aabb) -> f32 {
         bounds.size().max_element() / (self.density_grid * self.density_brick * self.samples_per_cell) as f32
     }
@@ -216,7 +226,7 @@ fn yes() -> bool {
 pub fn fit_bounds(teacher: &Trainer, data: &Dataset, cfg: &DistillConfig) -> Option<Aabb> {
     let whole = teacher.config.bounds;
     let coarse = bake_density(teacher, whole, cfg);
-    let hits = march_rays(&coarse, cfg.step(&whole), cfg.alpha_min, data, cfg.error_tile);
+    let hits = march_rays(&coarse, cfg.step(&whole), cfg.alpha_min, &model::HitRule::default(), data, cfg.error_tile);
     let has_alpha = data.images.iter().any(|im| im.rgba.chunks_exact(4).any(|p| p[3] < 0.5));
     let points: Vec<Vec3> = hits
         .rays
@@ -281,6 +291,49 @@ pub struct HitRay {
     pub y_px: u16,
     pub p_hit: Vec3,
     pub alpha_c: f32,
+    pub more: MoreHits,
+}
+
+impl HitRay {
+    /// Every point this ray queries the network at.
+    pub fn points(&self) -> impl Iterator<Item = Vec3> + '_ {
+        self.more.queries(self.p_hit).map(|(p, _)| p)
+    }
+}
+
+/// A ray's queries beyond its primary hit `p_hit` (the multi-hit rule, [`model::MultiHit`]),
+/// and the blend weights of all of them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MoreHits {
+    pub p: [Vec3; model::MAX_HITS - 1],
+    /// Blend weights, primary first; sum to 1.
+    pub beta: [f32; model::MAX_HITS],
+    pub count: u8,
+}
+
+impl Default for MoreHits {
+    /// One hit.
+    fn default() -> Self {
+        let mut beta = [0.0; model::MAX_HITS];
+        beta[0] = 1.0;
+        Self { p: [Vec3::ZERO; model::MAX_HITS - 1], beta, count: 1 }
+    }
+}
+
+impl MoreHits {
+    /// From a march result along `o + t·d`.
+    pub fn of(m: &model::MultiHit, o: Vec3, d: Vec3) -> Self {
+        let mut out = Self { beta: m.beta, count: m.count.max(1) as u8, ..Self::default() };
+        for i in 1..m.count as usize {
+            out.p[i - 1] = o + m.t[i] * d;
+        }
+        out
+    }
+
+    /// `(point, blend weight)` of every query, primary first.
+    pub fn queries(&self, p_hit: Vec3) -> impl Iterator<Item = (Vec3, f32)> + '_ {
+        std::iter::once(p_hit).chain(self.p.iter().copied()).zip(self.beta).take(self.count as usize)
+    }
 }
 
 /// Stage 2b output: hits grouped by error-map tile.
@@ -298,7 +351,7 @@ pub struct Hits {
 }
 
 /// Stage 2b: marches every pixel of every image through `density`.
-pub fn march_rays(density: &TextureCubes, step: f32, alpha_min: f32, data: &Dataset, tile: u32) -> Hits {
+pub fn march_rays(density: &TextureCubes, step: f32, alpha_min: f32, rule: &model::HitRule, data: &Dataset, tile: u32) -> Hits {
     let settings = RenderSettings::default();
     let (w, h) = data.images.first().map_or((0, 0), |im| (im.width, im.height));
     let (tiles_x, tiles_y) = (w.div_ceil(tile), h.div_ceil(tile));
@@ -316,9 +369,10 @@ pub fn march_rays(density: &TextureCubes, step: f32, alpha_min: f32, data: &Data
                     for y in ty * tile..((ty + 1) * tile).min(image.height) {
                         for x in tx * tile..((tx + 1) * tile).min(image.width) {
                             let (o, d) = image.ray(x, y);
-                            let hit = model::march(density, o, d, step, &settings);
-                            if hit.alpha_c >= alpha_min {
-                                rays.push(HitRay { image: i as u32, x_px: x as u16, y_px: y as u16, p_hit: o + hit.t_hit * d, alpha_c: hit.alpha_c });
+                            let hit = model::march_multi(density, o, d, step, &settings, rule);
+                            if hit.march.alpha_c >= alpha_min {
+                                let (p_hit, more) = (o + hit.march.t_hit * d, MoreHits::of(&hit, o, d));
+                                rays.push(HitRay { image: i as u32, x_px: x as u16, y_px: y as u16, p_hit, alpha_c: hit.march.alpha_c, more });
                             } else if image.pixel(x, y)[3] >= 0.5 {
                                 missed += 1;
                             }
@@ -402,7 +456,7 @@ fn marked_cells(bounds: &Aabb, n: u32, extra: u32, points: impl Iterator<Item = 
 /// cell that overlaps a density brick. A ray hits only inside density bricks, so a vertex
 /// outside them is never read and the dilation costs only where a view can land.
 fn psh_vertex_set(bounds: &Aabb, n: u32, density: &TextureCubes, hits: &Hits, dilation: u32) -> Vec<UVec3> {
-    let near = marked_cells(bounds, n, 1, hits.rays.iter().map(|h| h.p_hit), dilation);
+    let near = marked_cells(bounds, n, 1, hits.rays.iter().flat_map(HitRay::points), dilation);
     if dilation == 0 {
         return near;
     }
@@ -538,7 +592,9 @@ pub struct StudentGradients {
 /// One ray of a batch: its hit and target.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StudentRay {
+    /// The primary hit; `more` holds the others and every query's blend weight.
     pub p_hit: Vec3,
+    pub more: MoreHits,
     pub dir: Vec3,
     pub alpha_c: f32,
     /// Straight RGB and alpha of the pixel.
@@ -563,8 +619,8 @@ pub struct StudentOutput {
 enum DiffuseSource<'a> {
     /// The student's own net (or constant `c_d = 0`, tint 1 without one).
     Own,
-    /// Given per ray (read from baked cubes): `[r, g, b, tint]`.
-    Given(&'a [[f32; 4]]),
+    /// Read from baked cubes (`[r, g, b, tint]`) at each query.
+    Cubes(&'a TextureCubes),
 }
 
 #[derive(Default)]
@@ -575,6 +631,8 @@ struct ChunkGradients {
     specular_mlp: Vec<f32>,
     d_diffuse_encoded: Vec<f32>,
     d_specular_encoded: Vec<f32>,
+    /// Where the specular encoding was read (rows of `d_specular_encoded`).
+    specular_points: Vec<Vec3>,
     outputs: Vec<StudentOutput>,
 }
 
@@ -665,33 +723,37 @@ impl Student {
     }
 
     /// Forward, and with `loss_scale` the backward pass of `loss_scale · Σ (‖e_rgb‖² + e_α²)`.
+    /// A ray's queries (one per hit, [`MoreHits`]) are shaded each as [`model::shade`] does
+    /// and blended by their weights `β`: pixel `= Σ β_q pixel_q`, α `= Σ β_q α_q`.
     fn run_chunk(&self, rays: &[StudentRay], diffuse_source: DiffuseSource<'_>, loss_scale: Option<f32>) -> ChunkGradients {
-        let n = rays.len();
+        // Every query of the chunk: (ray, point, β).
+        let queries: Vec<(usize, Vec3, f32)> = rays.iter().enumerate().flat_map(|(i, r)| r.more.queries(r.p_hit).map(move |(p, b)| (i, p, b))).collect();
+        let nq = queries.len();
         let net = match diffuse_source {
             DiffuseSource::Own => self.diffuse.as_ref(),
-            DiffuseSource::Given(_) => None,
+            DiffuseSource::Cubes(_) => None,
         };
-        // Diffuse colour and tint per ray: the net's taps, blended, or given.
+        // Diffuse colour and tint per query: the net's taps, blended, or given.
         let taps = if self.diffuse_lattice.is_some() { 8 } else { 1 };
-        let (mut points01, mut tap_weights) = (Vec::new(), Vec::new());
+        let (mut tap_points01, mut tap_weights) = (Vec::new(), Vec::new());
         let mut enc = Vec::new();
         let mut tape_d = MlpTape::default();
         let mut diffuse_out = Vec::new();
         let blended: Vec<[f32; 4]> = match (net, diffuse_source) {
-            (_, DiffuseSource::Given(given)) => given.to_vec(),
-            (None, _) => vec![[0.0, 0.0, 0.0, 1.0]; n],
+            (_, DiffuseSource::Cubes(cubes)) => queries.iter().map(|q| cubes.sample::<4>(q.1)).collect(),
+            (None, _) => vec![[0.0, 0.0, 0.0, 1.0]; nq],
             (Some(net), _) => {
-                for r in rays {
-                    self.diffuse_taps(r.p_hit, &mut points01, &mut tap_weights);
+                for &(_, p, _) in &queries {
+                    self.diffuse_taps(p, &mut tap_points01, &mut tap_weights);
                 }
-                enc = vec![0.0; n * taps * net.grid.output_width()];
-                net.grid.encode_batch(&points01, &mut enc);
+                enc = vec![0.0; nq * taps * net.grid.output_width()];
+                net.grid.encode_batch(&tap_points01, &mut enc);
                 net.mlp.forward(&enc, &mut tape_d);
                 diffuse_out = tape_d.output().iter().map(|&o| sigmoid(o)).collect();
-                (0..n)
-                    .map(|i| {
+                (0..nq)
+                    .map(|q| {
                         let mut b = [0.0f32; 4];
-                        for t in i * taps..(i + 1) * taps {
+                        for t in q * taps..(q + 1) * taps {
                             for (b, v) in b.iter_mut().zip(&diffuse_out[4 * t..4 * t + 4]) {
                                 *b += tap_weights[t] * v;
                             }
@@ -701,62 +763,89 @@ impl Student {
                     .collect()
             }
         };
-        // The specular net.
+        // The specular net, once per query.
         let f = self.encoding.width();
         let ws = f + SH_COEFFS + 1;
-        let mut xs = vec![0.0; n * ws];
-        let hit01: Vec<Vec3> = rays.iter().map(|r| self.to_unit(r.p_hit)).collect();
-        for ((ray, &p01), x) in rays.iter().zip(&hit01).zip(xs.chunks_exact_mut(ws)) {
-            self.encoding.encode(ray.p_hit, p01, &mut x[..f]);
-            x[f..f + SH_COEFFS].copy_from_slice(&sh4(ray.dir));
-            x[f + SH_COEFFS] = ray.alpha_c;
+        let mut xs = vec![0.0; nq * ws];
+        let points: Vec<Vec3> = queries.iter().map(|q| q.1).collect();
+        let points01: Vec<Vec3> = points.iter().map(|&p| self.to_unit(p)).collect();
+        for ((&(i, p, _), &p01), x) in queries.iter().zip(&points01).zip(xs.chunks_exact_mut(ws)) {
+            self.encoding.encode(p, p01, &mut x[..f]);
+            x[f..f + SH_COEFFS].copy_from_slice(&sh4(rays[i].dir));
+            x[f + SH_COEFFS] = rays[i].alpha_c;
         }
         let mut tape_s = MlpTape::default();
         self.specular_mlp.forward(&xs, &mut tape_s);
+        // Each query's colour (before and after the clamp), specular colour and α.
+        struct Shaded {
+            u: Vec3,
+            c: Vec3,
+            c_s: Vec3,
+            alpha: f32,
+        }
+        let shaded: Vec<Shaded> = (0..nq)
+            .map(|q| {
+                let os = &tape_s.output()[4 * q..4 * q + 4];
+                let [r, g, b, tint] = blended[q];
+                let c_s = Vec3::new(sigmoid(os[0]), sigmoid(os[1]), sigmoid(os[2]));
+                let u = Vec3::new(r, g, b) + tint * c_s;
+                Shaded { u, c: u.clamp(Vec3::ZERO, Vec3::ONE), c_s, alpha: sigmoid(os[3]) }
+            })
+            .collect();
+        // Per ray: the blend, its errors, and d(loss)/d(pixel), d(loss)/d(α).
         let mut out = ChunkGradients::default();
-        let (mut d_od, mut d_os) = (vec![0.0; diffuse_out.len()], vec![0.0; n * 4]);
+        let (mut pixel, mut alpha) = (vec![Vec3::ZERO; rays.len()], vec![0.0f32; rays.len()]);
+        for (&(i, _, beta), sh) in queries.iter().zip(&shaded) {
+            let bg = rays[i].background;
+            pixel[i] += beta * (sh.alpha * sh.c + (1.0 - sh.alpha) * bg);
+            alpha[i] += beta * sh.alpha;
+        }
+        let mut d_ray = Vec::with_capacity(rays.len());
         for (i, ray) in rays.iter().enumerate() {
-            let os = &tape_s.output()[4 * i..4 * i + 4];
-            let [r, g, b, tint] = blended[i];
-            let c_d = Vec3::new(r, g, b);
-            let c_s = Vec3::new(sigmoid(os[0]), sigmoid(os[1]), sigmoid(os[2]));
-            let alpha = sigmoid(os[3]);
-            let u = c_d + tint * c_s;
-            let c = u.clamp(Vec3::ZERO, Vec3::ONE);
-            let pixel = alpha * c + (1.0 - alpha) * ray.background;
             let target = ray.alpha * ray.rgb + (1.0 - ray.alpha) * ray.background;
-            let e = pixel - target;
-            let ea = alpha - ray.alpha;
-            out.outputs.push(StudentOutput { pixel, alpha, rgb_error: e.length_squared(), alpha_error: ea * ea });
-            let Some(s) = loss_scale else { continue };
-            let d_pixel = 2.0 * s * e;
-            let d_alpha = d_pixel.dot(c - ray.background) + 2.0 * s * ea;
-            let inside = Vec3::select(u.cmpgt(Vec3::ZERO) & u.cmplt(Vec3::ONE), Vec3::ONE, Vec3::ZERO);
-            let d_c = alpha * d_pixel * inside;
+            let e = pixel[i] - target;
+            let ea = alpha[i] - ray.alpha;
+            out.outputs.push(StudentOutput { pixel: pixel[i], alpha: alpha[i], rgb_error: e.length_squared(), alpha_error: ea * ea });
+            if let Some(s) = loss_scale {
+                d_ray.push((2.0 * s * e, 2.0 * s * ea));
+            }
+        }
+        if loss_scale.is_none() {
+            return out;
+        }
+        // Per query: the chain through the blend (× β) and [`model::shade`].
+        let sig_d = |y: f32| y * (1.0 - y);
+        let (mut d_od, mut d_os) = (vec![0.0; diffuse_out.len()], vec![0.0; nq * 4]);
+        for (q, (&(i, _, beta), sh)) in queries.iter().zip(&shaded).enumerate() {
+            let (d_pixel, d_alpha_loss) = d_ray[i];
+            let tint = blended[q][3];
+            let d_pixel = beta * d_pixel;
+            let d_alpha = d_pixel.dot(sh.c - rays[i].background) + beta * d_alpha_loss;
+            let inside = Vec3::select(sh.u.cmpgt(Vec3::ZERO) & sh.u.cmplt(Vec3::ONE), Vec3::ONE, Vec3::ZERO);
+            let d_c = sh.alpha * d_pixel * inside;
             let d_cs = tint * d_c;
-            let sig_d = |y: f32| y * (1.0 - y);
             if net.is_some() {
-                let d_blended = [d_c.x, d_c.y, d_c.z, d_c.dot(c_s)];
-                for t in i * taps..(i + 1) * taps {
+                let d_blended = [d_c.x, d_c.y, d_c.z, d_c.dot(sh.c_s)];
+                for t in q * taps..(q + 1) * taps {
                     for ch in 0..4 {
                         d_od[4 * t + ch] = tap_weights[t] * d_blended[ch] * sig_d(diffuse_out[4 * t + ch]);
                     }
                 }
             }
-            d_os[4 * i..4 * i + 4].copy_from_slice(&[d_cs.x * sig_d(c_s.x), d_cs.y * sig_d(c_s.y), d_cs.z * sig_d(c_s.z), d_alpha * sig_d(alpha)]);
+            let c_s = sh.c_s;
+            d_os[4 * q..4 * q + 4].copy_from_slice(&[d_cs.x * sig_d(c_s.x), d_cs.y * sig_d(c_s.y), d_cs.z * sig_d(c_s.z), d_alpha * sig_d(sh.alpha)]);
         }
-        if loss_scale.is_some() {
-            if let Some(net) = net {
-                out.diffuse_mlp = vec![0.0; net.mlp.params().len()];
-                out.d_diffuse_encoded = vec![0.0; enc.len()];
-                net.mlp.backward(&enc, &tape_d, &d_od, &mut out.diffuse_mlp, Some(&mut out.d_diffuse_encoded));
-                out.diffuse_points01 = points01;
-            }
-            out.specular_mlp = vec![0.0; self.specular_mlp.params().len()];
-            let mut d_xs = vec![0.0; n * ws];
-            self.specular_mlp.backward(&xs, &tape_s, &d_os, &mut out.specular_mlp, Some(&mut d_xs));
-            out.d_specular_encoded = d_xs.chunks_exact(ws).flat_map(|row| row[..f].iter().copied()).collect();
+        if let Some(net) = net {
+            out.diffuse_mlp = vec![0.0; net.mlp.params().len()];
+            out.d_diffuse_encoded = vec![0.0; enc.len()];
+            net.mlp.backward(&enc, &tape_d, &d_od, &mut out.diffuse_mlp, Some(&mut out.d_diffuse_encoded));
+            out.diffuse_points01 = tap_points01;
         }
+        out.specular_mlp = vec![0.0; self.specular_mlp.params().len()];
+        let mut d_xs = vec![0.0; nq * ws];
+        self.specular_mlp.backward(&xs, &tape_s, &d_os, &mut out.specular_mlp, Some(&mut d_xs));
+        out.d_specular_encoded = d_xs.chunks_exact(ws).flat_map(|row| row[..f].iter().copied()).collect();
+        out.specular_points = points;
         out
     }
 
@@ -767,13 +856,8 @@ impl Student {
 
     /// Per-ray results with the diffuse colour and tint given per ray (read from baked
     /// cubes) instead of the diffuse net.
-    pub fn forward_with_diffuse(&self, rays: &[StudentRay], diffuse: &[[f32; 4]], rays_per_chunk: usize) -> Vec<StudentOutput> {
-        assert_eq!(rays.len(), diffuse.len());
-        let k = rays_per_chunk.max(1);
-        rays.par_chunks(k)
-            .zip(diffuse.par_chunks(k))
-            .flat_map_iter(|(c, d)| self.run_chunk(c, DiffuseSource::Given(d), None).outputs)
-            .collect()
+    pub fn forward_with_diffuse(&self, rays: &[StudentRay], diffuse: &TextureCubes, rays_per_chunk: usize) -> Vec<StudentOutput> {
+        rays.par_chunks(rays_per_chunk.max(1)).flat_map_iter(|c| self.run_chunk(c, DiffuseSource::Cubes(diffuse), None).outputs).collect()
     }
 
     /// Adds the gradients of the batch loss `mean over rays of (‖e_rgb‖² + e_α²) / 4` to
@@ -782,9 +866,10 @@ impl Student {
         let scale = 1.0 / (4 * rays.len().max(1)) as f32;
         let chunks: Vec<ChunkGradients> = rays.par_chunks(rays_per_chunk.max(1)).map(|c| self.run_chunk(c, DiffuseSource::Own, Some(scale))).collect();
         let mut outputs = Vec::with_capacity(rays.len());
-        let (mut d_diffuse, mut d_specular, mut diffuse_points01) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut d_diffuse, mut d_specular, mut diffuse_points01, mut points) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for c in chunks {
             diffuse_points01.extend(c.diffuse_points01);
+            points.extend(c.specular_points);
             grads.diffuse_mlp.iter_mut().zip(&c.diffuse_mlp).for_each(|(g, d)| *g += d);
             grads.specular_mlp.iter_mut().zip(&c.specular_mlp).for_each(|(g, d)| *g += d);
             d_diffuse.extend(c.d_diffuse_encoded);
@@ -794,7 +879,6 @@ impl Student {
         if let Some(net) = &self.diffuse {
             net.grid.backward(&diffuse_points01, &d_diffuse, &mut grads.diffuse_grid);
         }
-        let points: Vec<Vec3> = rays.iter().map(|r| r.p_hit).collect();
         let points01: Vec<Vec3> = points.iter().map(|&p| self.to_unit(p)).collect();
         self.encoding.backward(&points, &points01, &d_specular, &mut grads.encoding);
         outputs
@@ -867,12 +951,12 @@ pub fn geometry(teacher: &Trainer, data: &Dataset, cfg: &DistillConfig) -> Resul
     let bounds = fit_bounds(teacher, data, cfg).ok_or("no training ray hits the field's density: nothing to model")?;
     let step = cfg.step(&bounds);
     let baked = bake_density(teacher, bounds, cfg);
-    let first = march_rays(&baked, step, cfg.alpha_min, data, cfg.error_tile);
+    let first = march_rays(&baked, step, cfg.alpha_min, &cfg.hits, data, cfg.error_tile);
     // Keep only bricks near surfaces the cameras reach, then march again with exactly the
     // cubes that will be stored.
-    let near = cell_mask(&baked, &marked_cells(&bounds, cfg.density_grid, 0, first.rays.iter().map(|h| h.p_hit), cfg.density_dilation));
+    let near = cell_mask(&baked, &marked_cells(&bounds, cfg.density_grid, 0, first.rays.iter().flat_map(HitRay::points), cfg.density_dilation));
     let density = baked.retain(|i, _| near[i]);
-    let hits = march_rays(&density, step, cfg.alpha_min, data, cfg.error_tile);
+    let hits = march_rays(&density, step, cfg.alpha_min, &cfg.hits, data, cfg.error_tile);
     if hits.rays.is_empty() {
         return Err("no training ray hits the baked density: nothing to model".into());
     }
@@ -968,7 +1052,7 @@ impl Distiller {
                 let (_, dir) = image.ray(h.x_px as u32, h.y_px as u32);
                 let [r, g, b, a] = image.pixel(h.x_px as u32, h.y_px as u32);
                 let background = Vec3::new(rng.random(), rng.random(), rng.random());
-                StudentRay { p_hit: h.p_hit, dir, alpha_c: h.alpha_c, rgb: Vec3::new(r, g, b), alpha: a, background }
+                StudentRay { p_hit: h.p_hit, more: h.more, dir, alpha_c: h.alpha_c, rgb: Vec3::new(r, g, b), alpha: a, background }
             })
             .collect();
         let mut grads = std::mem::take(&mut self.grads);
@@ -1014,7 +1098,7 @@ impl Distiller {
         let cfg = &self.config;
         let s = &self.student;
         let bounds = s.bounds;
-        let cells = marked_cells(&bounds, cfg.diffuse_grid, 0, self.hits.rays.iter().map(|h| h.p_hit), cfg.diffuse_dilation);
+        let cells = marked_cells(&bounds, cfg.diffuse_grid, 0, self.hits.rays.iter().flat_map(HitRay::points), cfg.diffuse_dilation);
         let g = cfg.diffuse_grid as usize;
         let mut wanted = vec![false; g * g * g];
         for c in &cells {
@@ -1039,7 +1123,7 @@ impl Distiller {
         Ok(Asset {
             name: name.to_string(),
             bounds: self.student.bounds,
-            march: MarchMeta { step, alpha_min: self.config.alpha_min },
+            march: MarchMeta { step, alpha_min: self.config.alpha_min, hits: self.config.hit_rule() },
             density,
             diffuse: self.bake_diffuse(),
             psh,
@@ -1140,8 +1224,8 @@ pub fn render_image(asset: &Asset, image: &crate::dataset::DatasetImage, backgro
     let rays: Vec<(Vec3, Vec3)> = image.rays().collect();
     rays.par_iter()
         .flat_map_iter(|&(o, d)| {
-            let m = model::march(&asset.density, o, d, asset.march.step, &settings);
-            let rgb = if m.alpha_c < asset.march.alpha_min { background } else { model::shade(asset, &net, o + m.t_hit * d, d, m.alpha_c, background).0 };
+            let m = model::march_multi(&asset.density, o, d, asset.march.step, &settings, &asset.march.hits);
+            let rgb = if m.march.alpha_c < asset.march.alpha_min { background } else { model::shade_multi(asset, &net, &m, o, d, background).0 };
             rgb.to_array()
         })
         .collect()

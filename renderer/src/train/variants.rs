@@ -19,7 +19,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::{
-    distill::{Student, StudentRay},
+    distill::{MoreHits, Student, StudentRay},
     field::FieldTape,
     trainer::Trainer,
 };
@@ -123,15 +123,12 @@ fn shade_student(student: &Student, diffuse: Option<&TextureCubes>, rays: &[(Vec
         .iter()
         .zip(marched)
         .filter(|(_, m)| m.alpha_c >= alpha_min)
-        .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background })
+        .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, more: MoreHits::default(), dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background })
         .collect();
     let hits = hit_rays.len();
     let shaded = match diffuse {
         None => student.forward(&hit_rays, 256),
-        Some(cubes) => {
-            let given: Vec<[f32; 4]> = hit_rays.par_iter().map(|r| cubes.sample::<4>(r.p_hit)).collect();
-            student.forward_with_diffuse(&hit_rays, &given, 256)
-        }
+        Some(cubes) => student.forward_with_diffuse(&hit_rays, cubes, 256),
     };
     let mut shaded = shaded.into_iter();
     let rgb = marched

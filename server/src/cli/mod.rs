@@ -83,3 +83,26 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Bench { what } => bench::run(what),
     }
 }
+
+/// The renderer's speed-for-accuracy knobs, as flags.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RenderKnobs {
+    /// Step-size multiplier (speed/accuracy knob; keep it equal on every worker).
+    #[arg(long, default_value_t = 1.0)]
+    pub step_scale: f32,
+    /// Multi-hit threshold τ: a further query for each part of a ray's weight holding at
+    /// least τ of its opacity (1 = one hit per ray); default: the asset's own.
+    #[arg(long)]
+    pub hit_tau: Option<f32>,
+    /// Most network queries per ray (1..=3); default: the asset's own.
+    #[arg(long)]
+    pub max_hits: Option<u32>,
+}
+
+impl RenderKnobs {
+    pub fn settings(&self) -> Result<nephele_renderer::RenderSettings> {
+        let s = nephele_renderer::RenderSettings { step_scale: self.step_scale, hit_tau: self.hit_tau, max_hits: self.max_hits, ..Default::default() };
+        s.validate().map_err(anyhow::Error::msg)?;
+        Ok(s)
+    }
+}

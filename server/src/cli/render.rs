@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use glam::{DMat4, DVec3};
 use nephele_renderer::{
-    Instance, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
+    Instance, Intrinsics, RenderStats, View, ViewRequest,
     procedural::{self, ProceduralConfig, Scene},
     views::{QuiltLayout, focal_distance},
 };
@@ -53,9 +53,8 @@ pub struct RenderArgs {
     /// Also write alpha here.
     #[arg(long)]
     alpha: Option<PathBuf>,
-    /// Step-size multiplier (speed/accuracy knob).
-    #[arg(long, default_value_t = 1.0)]
-    step_scale: f32,
+    #[command(flatten)]
+    knobs: super::RenderKnobs,
     /// Render a Looking Glass quilt of COLSxROWS views (e.g. 5x9) instead of one view;
     /// `--size` is then one tile. Views are the camera moved sideways with off-axis frusta,
     /// view 0 bottom-left (see `nephele_renderer::views`); all rendered in one batch. The
@@ -119,7 +118,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         Some(q) => q.cameras(&view, focal_distance(&view, DVec3::ZERO, 1e-3)),
         None => vec![view],
     };
-    let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
+    let settings = args.knobs.settings()?;
     let is_scene = args.asset.ends_with(".json") || crate::assets::BUILTIN_SCENE_FILES.iter().any(|(n, _)| args.asset == format!("builtin:{n}"));
     let (frames, s) = if is_scene {
         // A scene: every object rendered and composed by depth (timings summed).

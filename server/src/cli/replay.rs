@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Result, bail};
-use nephele_renderer::{Backend as _, CpuBackend, RenderSettings};
+use nephele_renderer::{Backend as _, CpuBackend};
 use nephele_signaling::Mode;
 
 use crate::{
@@ -40,9 +40,8 @@ pub struct ReplayArgs {
     /// Compare every n-th frame with the reference.
     #[arg(long, default_value_t = 10)]
     quality_every: usize,
-    /// Step-size multiplier the server uses (for the reference render).
-    #[arg(long, default_value_t = 1.0)]
-    step_scale: f32,
+    #[command(flatten)]
+    knobs: super::RenderKnobs,
     /// Save the decoded frames as PNG here.
     #[arg(long)]
     save: Option<PathBuf>,
@@ -70,7 +69,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
     let trace = load_trace(&args.trace)?;
     let (width, height) = parse_size(&args.size)?;
     let mode = parse_mode(&args.mode)?;
-    let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
+    let settings = args.knobs.settings()?;
     let reference = match &args.reference {
         Some(spec) => Some(CpuBackend.prepare(load_asset(spec)?)?),
         None => {

@@ -6,7 +6,6 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use nephele_limits::ConnLimits;
-use nephele_renderer::RenderSettings;
 
 use crate::{
     assets::{BackendChoice, DEFAULT_SCENES, make_backend},
@@ -33,9 +32,8 @@ pub struct MasterOptions {
     pub scenes: Vec<String>,
     #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendChoice,
-    /// Step-size multiplier (speed/accuracy knob).
-    #[arg(long, default_value_t = 1.0)]
-    pub step_scale: f32,
+    #[command(flatten)]
+    pub knobs: super::RenderKnobs,
     /// Sessions this master accepts at once (a hard cap; admission by load comes first).
     #[arg(long, default_value_t = 8)]
     pub capacity: u32,
@@ -127,7 +125,7 @@ impl MasterOptions {
         let nats = self.nats.settings()?;
         // With a NATS farm the workers render; the master only needs the scenes' shapes.
         let backend = if nats.is_some() { Box::new(nephele_renderer::CpuBackend) } else { make_backend(self.backend)? };
-        let settings = RenderSettings { step_scale: self.step_scale, ..Default::default() };
+        let settings = self.knobs.settings()?;
         settings.validate().map_err(anyhow::Error::msg)?;
         eprintln!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name());
         let catalog = Arc::new(Catalog::load(&self.scenes, backend.as_ref(), settings)?);
@@ -342,16 +340,15 @@ pub struct WorkerArgs {
     pub scenes: Vec<String>,
     #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendChoice,
-    /// Step-size multiplier (speed/accuracy knob; keep it equal on every worker).
-    #[arg(long, default_value_t = 1.0)]
-    pub step_scale: f32,
+    #[command(flatten)]
+    pub knobs: super::RenderKnobs,
     #[command(flatten)]
     pub nats: NatsArgs,
 }
 
 pub fn worker(args: WorkerArgs) -> Result<()> {
     let Some(url) = args.nats.nats.clone() else { anyhow::bail!("a worker needs --nats URL (the farm's NATS server)") };
-    let settings = RenderSettings { step_scale: args.step_scale, ..Default::default() };
+    let settings = args.knobs.settings()?;
     settings.validate().map_err(anyhow::Error::msg)?;
     let backend = make_backend(args.backend)?;
     eprintln!("preparing {} scene(s) on {} ...", args.scenes.len(), backend.name());

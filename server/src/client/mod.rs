@@ -9,7 +9,7 @@
 use std::{
     sync::{
         Arc,
-        atomic::{AtomicU32, AtomicU64, Ordering},
+        atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering},
     },
     time::{Duration, Instant},
 };
@@ -108,6 +108,8 @@ pub struct StreamClient {
     /// When [`StreamClient::send_pose_paced`] last sent, and how many it held back.
     last_paced: std::sync::Mutex<Option<Instant>>,
     poses_held_back: AtomicU64,
+    /// [`StreamClient::close`] ran (so dropping has nothing left to close).
+    closed: AtomicBool,
 }
 
 /// Unacknowledged pose-channel bytes up to which [`StreamClient::send_pose_paced`] sends
@@ -226,18 +228,24 @@ impl StreamClient {
 
         // From here a task owns the websocket: it applies the answer and candidates and
         // forwards everything else.
+        // It holds the peer weakly (the peer's callbacks do not hold the task), and when the
+        // client is closed or dropped (its sender gone) it closes the websocket properly.
         let (sig_tx, mut signaling) = mpsc::unbounded_channel();
-        let pc2 = Arc::clone(&pc);
+        let weak_pc = Arc::downgrade(&pc);
         tokio::spawn(async move {
             loop {
                 tokio::select! {
                     out = ws_out_rx.recv() => {
-                        let Some(out) = out else { break };
+                        let Some(out) = out else {
+                            let _ = ws_tx.close().await;
+                            break;
+                        };
                         let Ok(text) = serde_json::to_string(&out) else { continue };
                         if ws_tx.send(Message::text(text)).await.is_err() { break }
                     }
                     msg = next_signal(&mut ws_rx) => match msg {
                         Ok(ToClient::Answer { sdp }) => {
+                            let Some(pc2) = weak_pc.upgrade() else { break };
                             let applied = match RTCSessionDescription::answer(sdp) {
                                 Ok(answer) => pc2.set_remote_description(answer).await.map_err(|e| anyhow!(e)),
                                 Err(e) => Err(anyhow!(e)),
@@ -247,6 +255,7 @@ impl StreamClient {
                             }
                         }
                         Ok(ToClient::Ice { candidate }) => {
+                            let Some(pc2) = weak_pc.upgrade() else { break };
                             if let Ok(init) = serde_json::from_value::<RTCIceCandidateInit>(candidate)
                                 && !init.candidate.is_empty()
                                 && let Err(e) = pc2.add_ice_candidate(init).await
@@ -277,7 +286,7 @@ impl StreamClient {
                 },
             }
         };
-        Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc, stats, last_paced: std::sync::Mutex::new(None), poses_held_back: AtomicU64::new(0) })
+        Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc, stats, last_paced: std::sync::Mutex::new(None), poses_held_back: AtomicU64::new(0), closed: AtomicBool::new(false) })
     }
 
     pub async fn send_pose(&self, pose: &PoseMessage) -> Result<()> {
@@ -348,10 +357,28 @@ impl StreamClient {
         self.stats.snapshot()
     }
 
+    /// Leaves: tells signaling, closes the peer connection, then the signaling websocket
+    /// (with a close frame). Dropping a client does the same without the `leave`.
     pub async fn close(self) {
         let _ = self.ws_out.send(ToSignal::Leave {});
         tokio::time::sleep(Duration::from_millis(50)).await;
+        self.closed.store(true, Ordering::Relaxed);
         let _ = self.pc.close().await;
+    }
+}
+
+impl Drop for StreamClient {
+    fn drop(&mut self) {
+        // The websocket task ends when `ws_out` goes with this struct; the peer connection's
+        // own tasks would keep it alive (answering ICE, so the master never lets it go).
+        if !self.closed.load(Ordering::Relaxed)
+            && let Ok(rt) = tokio::runtime::Handle::try_current()
+        {
+            let pc = Arc::clone(&self.pc);
+            rt.spawn(async move {
+                let _ = pc.close().await;
+            });
+        }
     }
 }
 

@@ -153,6 +153,7 @@ struct SessionEdge {
 /// signaling refuses our credentials; reconnects with back-off if signaling goes away.
 pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, metrics: Arc<MasterMetrics>) -> Result<()> {
     let api = build_api(&cfg.rtc)?;
+    super::memory::spawn_trimmer();
     let (events_tx, mut events) = mpsc::unbounded_channel::<Event>();
     let (to_signal, outbox) = mpsc::unbounded_channel::<ToSignal>();
     let register = ToSignal::Register { name: cfg.name.clone(), capacity: cfg.core.capacity, scenes: catalog.names(), token: cfg.token.clone() };
@@ -318,6 +319,7 @@ fn execute(
         Output::Close { session, reason, tell_signaling } => {
             if let Some(edge) = sessions.remove(&session) {
                 let _ = edge.commands.send(PeerCommand::Close);
+                super::memory::session_ended();
             }
             if tell_signaling {
                 let _ = to_signal.send(ToSignal::End { session, reason });

@@ -8,12 +8,13 @@
 //!   after [`compositor`] has composed a multi-object frame by depth), and the render
 //!   workers: [`workers`] (in-process threads, the default) or [`nats_farm`] (worker
 //!   processes on other machines, reached through NATS);
-//! - [`metrics`]: what `GET /metrics` shows.
+//! - [`metrics`]: what `GET /metrics` shows; [`memory`]: freed memory handed back after sessions end.
 
 pub mod compositor;
 pub mod core;
 pub mod driver;
 pub mod encoder;
+pub mod memory;
 pub mod metrics;
 pub mod nats_farm;
 pub mod peer;
