@@ -3,7 +3,7 @@
 //! through them (real WebRTC, real OpenH264 both ways), compared with direct renders.
 
 
-use nephele_e2e::{Reap, nephele, repo};
+use nephele_e2e::{Reap, nephele, repo, spawn_signal_at};
 
 /// Starts `nephele signal` on a free port; returns it with its `host:port`.
 fn spawn_signal() -> (Reap, String) {
@@ -113,16 +113,6 @@ fn a_stopped_master_is_noticed_within_seconds() {
     assert!(noticed <= std::time::Duration::from_millis(4800), "noticed after {noticed:?}");
 }
 
-/// `nephele signal --listen addr` as a child; waits until it prints its address.
-fn spawn_signal_at(addr: &str) -> Reap {
-    use std::io::{BufRead, BufReader};
-    let mut child = nephele().args(["signal", "--listen", addr]).stdout(std::process::Stdio::piped()).spawn().unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    assert!(line.contains("ws://"), "signal printed {line:?}");
-    Reap(child)
-}
-
 /// `GET /status` of signaling at `addr`, parsed (`None` while it is down).
 fn status(addr: &str) -> Option<serde_json::Value> {
     use std::io::{Read, Write};
@@ -149,14 +139,7 @@ async fn streams_survive_a_signaling_restart() {
     let addr = format!("127.0.0.1:{port}");
     let url = format!("ws://{addr}/signal");
     let signal = spawn_signal_at(&addr);
-    let scene = format!("trio={}", repo().join("examples/assets/trio-small.nolf").display());
-    let _master = Reap(
-        nephele()
-            .args(["master", "--signal", &url, "--scene", &scene, "--backend", "cpu", "--loopback-only", "--render-scale", "1", "--admission", "open"])
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
+    let _master = nephele_e2e::spawn_fixture_master(&addr);
     let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, keep_pixels: false, quilt: None };
     let deadline = Instant::now() + Duration::from_secs(60);
     let mut client = loop {

@@ -1,16 +1,17 @@
-//! The `.nolf` asset: one safetensors file (readable from numpy/torch) whose `__metadata__`
-//! holds versioned, self-describing JSON (`nolf`) and its SHA-256 (`nolf_sha256`); the JSON in
-//! turn holds a SHA-256 per tensor. Loading validates the container, the checksums, every
-//! shape against the metadata (before any allocation sized by it), every index and range, the
-//! perfect hash (collision-free) and finite weights. Any failure is an [`AssetError`].
+//! The `.nolf` asset: one [`crate::container`] file (safetensors, readable from numpy/torch)
+//! whose `__metadata__` holds versioned, self-describing JSON (`nolf`) and its SHA-256
+//! (`nolf_sha256`); the JSON in turn holds a SHA-256 per tensor. Loading validates the
+//! container, the checksums, every shape against the metadata (before any allocation sized by
+//! it), every index and range, the perfect hash (collision-free) and finite weights. Any
+//! failure is an [`AssetError`].
 
 use std::{collections::BTreeMap, fmt, path::Path};
 
-use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use safetensors::Dtype;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
 use crate::{
+    container::{self, ContainerError, Reader, Tensor, Verify},
     cubes::{Aabb, CubeStorage, TextureCubes},
     mlp::{HIDDEN, SpecularMlp},
     psh::SpatialHash,
@@ -19,6 +20,8 @@ use crate::{
 
 pub const FORMAT_NAME: &str = "nephele-nolf";
 pub const FORMAT_VERSION: u32 = 1;
+/// The `__metadata__` key of the JSON.
+const META_KEY: &str = "nolf";
 /// Files above this size are refused before reading.
 pub const MAX_FILE_BYTES: u64 = 2 << 30;
 const MAX_GRID: u32 = 512;
@@ -33,18 +36,11 @@ pub enum AssetError {
     Io { path: String, source: std::io::Error },
     #[error("asset is {0} bytes; the limit is {MAX_FILE_BYTES}")]
     TooLarge(u64),
-    #[error("not a valid .nolf container: {0}")]
-    Container(String),
+    /// The container, the metadata checksum, or a tensor's dtype, shape or checksum.
+    #[error("not a valid .nolf file: {0}")]
+    Container(#[from] ContainerError),
     #[error("asset format {found:?} version {version} is not supported (this build reads {FORMAT_NAME:?} version {FORMAT_VERSION})")]
     Version { found: String, version: u32 },
-    #[error("asset metadata is corrupt: {0}")]
-    Metadata(String),
-    #[error("tensor {0:?} is missing")]
-    Missing(&'static str),
-    #[error("tensor {name:?} has dtype {found:?} and shape {shape:?}; expected {want_dtype:?} {want_shape:?}")]
-    Shape { name: &'static str, found: Dtype, shape: Vec<usize>, want_dtype: Dtype, want_shape: Vec<usize> },
-    #[error("tensor {0:?} fails its checksum (file corrupted)")]
-    Checksum(&'static str),
     #[error("asset content is invalid: {0}")]
     Invalid(String),
 }
@@ -93,7 +89,7 @@ pub struct MarchMeta {
     pub hits: crate::model::HitRule,
 }
 
-/// The `nolf` JSON in the safetensors header.
+/// The `nolf` JSON in the safetensors header (followed there by the tensor checksums).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AssetMeta {
     pub format: String,
@@ -107,8 +103,6 @@ pub struct AssetMeta {
     pub mlp_input: u32,
     /// Where the asset came from: generator or dataset, settings, time, metrics.
     pub provenance: serde_json::Value,
-    /// Hex SHA-256 of each tensor's bytes.
-    pub checksums: BTreeMap<String, String>,
 }
 
 /// A loaded, validated i-NOLF asset.
@@ -124,10 +118,6 @@ pub struct Asset {
     pub psh: SpatialHash,
     pub mlp: SpecularMlp,
     pub provenance: serde_json::Value,
-}
-
-fn sha_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn f16_bytes(v: &[f32]) -> Vec<u8> {
@@ -208,7 +198,7 @@ fn expected_tensors(m: &AssetMeta) -> Result<Vec<TensorSpec>, AssetError> {
 }
 
 impl Asset {
-    fn meta_without_checksums(&self) -> AssetMeta {
+    fn meta(&self) -> AssetMeta {
         AssetMeta {
             format: FORMAT_NAME.into(),
             version: FORMAT_VERSION,
@@ -225,14 +215,13 @@ impl Asset {
             },
             mlp_input: self.mlp.input as u32,
             provenance: self.provenance.clone(),
-            checksums: BTreeMap::new(),
         }
     }
 
     /// Serialises to `.nolf` bytes. Fails only if the asset itself is invalid.
     pub fn to_bytes(&self) -> Result<Vec<u8>, AssetError> {
         self.validate()?;
-        let mut meta = self.meta_without_checksums();
+        let meta = self.meta();
         let data: Vec<(&'static str, Vec<u8>)> = vec![
             ("density.index", index_bytes(&self.density)),
             ("density.values", value_bytes(&self.density)),
@@ -248,18 +237,9 @@ impl Asset {
             ("mlp.w2", le_bytes(&self.mlp.w2)),
             ("mlp.b2", le_bytes(&self.mlp.b2)),
         ];
-        for (name, bytes) in &data {
-            meta.checksums.insert((*name).into(), sha_hex(bytes));
-        }
-        let shapes = expected_tensors(&meta)?;
-        let mut views = Vec::new();
-        for ((name, dtype, shape), (_, bytes)) in shapes.into_iter().zip(&data) {
-            let view = TensorView::new(dtype, shape, bytes).map_err(|e| invalid(format!("{name}: {e}")))?;
-            views.push((name, view));
-        }
-        let json = serde_json::to_string(&meta).map_err(|e| invalid(e.to_string()))?;
-        let info = [("nolf_sha256".to_string(), sha_hex(json.as_bytes())), ("nolf".to_string(), json)];
-        safetensors::serialize(views, Some(info.into_iter().collect())).map_err(|e| AssetError::Container(e.to_string()))
+        let tensors: Vec<Tensor<'_>> =
+            expected_tensors(&meta)?.into_iter().zip(&data).map(|((name, dtype, shape), (_, bytes))| Tensor { name, dtype, shape, data: bytes }).collect();
+        Ok(container::write(META_KEY, &meta, &tensors)?)
     }
 
     pub fn save(&self, path: &Path) -> Result<(), AssetError> {
@@ -278,27 +258,14 @@ impl Asset {
 
     /// Parses and fully validates `.nolf` bytes.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, AssetError> {
-        let file = SafeTensors::deserialize(bytes).map_err(|e| AssetError::Container(e.to_string()))?;
-        let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| AssetError::Container(e.to_string()))?;
-        let info = header.metadata().as_ref().ok_or_else(|| AssetError::Metadata("no __metadata__".into()))?;
-        let json = info.get("nolf").ok_or_else(|| AssetError::Metadata("no nolf entry".into()))?;
-        if info.get("nolf_sha256").map(String::as_str) != Some(sha_hex(json.as_bytes()).as_str()) {
-            return Err(AssetError::Metadata("checksum mismatch".into()));
-        }
-        let meta: AssetMeta = serde_json::from_str(json).map_err(|e| AssetError::Metadata(e.to_string()))?;
+        let file = Reader::new(bytes, META_KEY, Verify::Always)?;
+        let meta: AssetMeta = file.meta()?;
         if meta.format != FORMAT_NAME || meta.version != FORMAT_VERSION {
             return Err(AssetError::Version { found: meta.format, version: meta.version });
         }
         let mut tensors = BTreeMap::new();
         for (name, dtype, shape) in expected_tensors(&meta)? {
-            let view = file.tensor(name).map_err(|_| AssetError::Missing(name))?;
-            if view.dtype() != dtype || view.shape() != shape.as_slice() {
-                return Err(AssetError::Shape { name, found: view.dtype(), shape: view.shape().to_vec(), want_dtype: dtype, want_shape: shape });
-            }
-            if meta.checksums.get(name).map(String::as_str) != Some(sha_hex(view.data()).as_str()) {
-                return Err(AssetError::Checksum(name));
-            }
-            tensors.insert(name, view.data());
+            tensors.insert(name, file.tensor(name, dtype, &shape)?);
         }
         let f32s = |n: &str| bytemuck::pod_collect_to_vec::<u8, f32>(tensors[n]);
         let i32s = |n: &str| bytemuck::pod_collect_to_vec::<u8, i32>(tensors[n]);

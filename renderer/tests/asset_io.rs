@@ -5,6 +5,7 @@ mod common;
 
 use nephele_renderer::{
     Asset, AssetError,
+    container::ContainerError,
     cubes::CubeStorage,
     procedural::{self, ProceduralConfig, Scene},
 };
@@ -108,9 +109,9 @@ fn wrong_version_and_hostile_sizes_are_clear_errors() {
     }
     // A plausible but wrong size is a shape mismatch, not a misread.
     let err = Asset::from_bytes(&forge(&bytes, |m| m["density"]["bricks"] = 3.into())).unwrap_err();
-    assert!(matches!(err, AssetError::Shape { name: "density.values", .. }), "{err}");
+    assert!(matches!(err, AssetError::Container(ContainerError::Shape { name: "density.values", .. })), "{err}");
     let err = Asset::from_bytes(b"definitely not an asset").unwrap_err();
-    assert!(matches!(err, AssetError::Container(_)), "{err}");
+    assert!(matches!(err, AssetError::Container(ContainerError::Parse(_))), "{err}");
     let err = Asset::load(std::path::Path::new("/nonexistent/x.nolf")).unwrap_err();
     assert!(err.to_string().contains("/nonexistent/x.nolf"));
 }
@@ -155,7 +156,7 @@ fn unorm8_diffuse_round_trips_and_density_stays_f16() {
     assert!(err.to_string().contains("density cubes must be stored as f16"), "{err}");
     // A diffuse tensor whose dtype disagrees with the metadata is a shape error.
     let err = Asset::from_bytes(&forge(&half.to_bytes().unwrap(), |m| m["diffuse"]["storage"] = "unorm8".into())).unwrap_err();
-    assert!(matches!(err, AssetError::Shape { name: "diffuse.values", .. }), "{err}");
+    assert!(matches!(err, AssetError::Container(ContainerError::Shape { name: "diffuse.values", .. })), "{err}");
 }
 
 /// Index grids are written as i16 while there are fewer than 32768 bricks (half the bytes) and

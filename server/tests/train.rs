@@ -226,3 +226,36 @@ fn train_maps_aabb_scale_to_the_scene_box() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && stderr.contains("aabb_scale 1000"), "{stderr}");
 }
+
+/// `nephele bench tradeoff` end to end on a tiny teacher: the ablation rows, one-hit and
+/// multi-hit rows of `nephele train`'s settings with their queries per hit ray, the table,
+/// the JSON and both plots. Numbers here say nothing about quality (a few steps on 32×32
+/// views); the figures come from the lego run in `examples/assets/README.md`.
+#[test]
+fn bench_tradeoff_reports_one_and_multi_hit_rows_and_plots() {
+    let dir = TempDir::new("tradeoff");
+    let data = dir.path("data");
+    ok(&["synth", "--scene", "mixed", "--size", "32x32", "--train", "12", "--val", "0", "--test", "2", "--out", &data]);
+    ok(&["train", &data, "--out", &dir.path("t.nolf"), "--preset", "tiny", "--steps", "120", "--until", "ngp", "--json"]);
+    let out = dir.path("bench");
+    let o = nephele(&[
+        "bench", "tradeoff", &data, "--teacher", &dir.path("t.train/ngp.ckpt"), "--downscale", "1", "--nolf-steps", "15", "--psh", "256", "--size", "32x32",
+        "--views", "1", "--distances", "2", "--taus", "1,0.02", "--out", &out,
+    ]);
+    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success() && !stderr.contains("panicked"), "{stderr}");
+    assert!(stdout.contains("queries per hit ray") && stdout.contains("Fig. 13"), "{stdout}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(Path::new(&out).join("tradeoff.json")).unwrap()).unwrap();
+    let rows = report["rows"].as_array().unwrap();
+    let row = |part: &str| rows.iter().find(|r| r["variant"].as_str().unwrap().contains(part)).unwrap_or_else(|| panic!("no row {part:?} in {rows:?}"));
+    let (one, multi) = (row("one hit (τ = 1)"), row("τ = 0.02, up to 3 hits"));
+    assert_eq!(one["queries_per_hit"].as_f64(), Some(1.0), "{one}");
+    let q = multi["queries_per_hit"].as_f64().unwrap();
+    assert!((1.0..=3.0).contains(&q), "{multi}");
+    for r in rows {
+        assert!(r["psnr"].as_f64().is_some_and(f64::is_finite) && r["total_ms"].as_f64().is_some_and(|t| t > 0.0), "{r}");
+    }
+    for plot in ["tradeoff_psnr_ms.png", "tradeoff_distance.png"] {
+        assert_eq!(png_size(&Path::new(&out).join(plot)), (720, 460), "{plot}");
+    }
+}

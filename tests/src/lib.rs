@@ -233,3 +233,26 @@ impl Drop for ShowLogOnFailure {
         }
     }
 }
+
+/// `nephele signal --listen addr` as a child; waits until it prints its address.
+pub fn spawn_signal_at(addr: &str) -> Reap {
+    use std::io::{BufRead, BufReader};
+    let mut child = nephele().args(["signal", "--listen", addr]).stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.contains("ws://"), "signal printed {line:?}");
+    Reap(child)
+}
+
+/// `nephele master` for the fixture scene (`trio`), registering with signaling at `addr`
+/// (CPU, render scale 1, admission open; its log discarded).
+pub fn spawn_fixture_master(addr: &str) -> Reap {
+    let (scene, url) = (fixture_scene(), format!("ws://{addr}/signal"));
+    Reap(
+        nephele()
+            .args(["master", "--signal", &url, "--scene", &scene, "--backend", "cpu", "--loopback-only", "--render-scale", "1", "--admission", "open"])
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    )
+}

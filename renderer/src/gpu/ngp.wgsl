@@ -2,8 +2,8 @@
 // the scene box, fixed-step samples t0 + (k + ½)δ kept only in occupied cells, multiresolution
 // hash encoding → density MLP [enc, 64, 16] → σ = exp(min(o₀, 15)); colour MLP
 // [16 geometry features, SH4(dir); 64, 64, 3] → sigmoid; front-to-back compositing that stops
-// after the sample where T < early_stop, then T·background. Mirrors `Trainer::render`
-// (train/trainer.rs `run_chunk`, field.rs, hash_grid.rs, occupancy.rs, model.rs `clip_ray`).
+// after the sample where T < early_stop, then T·background. Mirrors `NgpModel::render`
+// (ngp/model.rs `forward_chunk`, ngp/field.rs, hash_grid.rs, occupancy.rs, model.rs `clip_ray`).
 // Keep `Params` and the weight layout in sync with `gpu/ngp.rs`.
 //
 // Speed on lavapipe (llvmpipe, Mesa 22.3), which runs 8 invocations per SIMD vector: a load

@@ -58,6 +58,12 @@ pub enum BenchCommand {
         /// Also time i-NGP and the asset on wgpu (one frame each; slow on software Vulkan).
         #[arg(long)]
         gpu: bool,
+        /// Multi-hit thresholds τ of the rows of `nephele train`'s settings (1 = one hit).
+        #[arg(long, default_value = "1,0.2,0.1,0.05", value_delimiter = ',')]
+        taus: Vec<f32>,
+        /// Most network queries per ray in those rows.
+        #[arg(long, default_value_t = 3)]
+        max_hits: u32,
     },
     /// RGB→I420 and H.264 encode times on a moving test pattern.
     Encode {
@@ -130,10 +136,10 @@ pub fn run(what: BenchCommand) -> Result<()> {
         BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms } => {
             stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms)
         }
-        BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu } => {
+        BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu, taus, max_hits } => {
             use super::tradeoff::{TradeoffOptions, format_report, run};
             let size = parse_size(&size)?;
-            let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out, gpu })?;
+            let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out, gpu, taus, max_hits })?;
             print!("{}", format_report(&report));
             Ok(())
         }

@@ -57,7 +57,7 @@ pub struct EvalArgs {
 }
 
 pub fn synth(args: SynthArgs) -> Result<()> {
-    use nephele_renderer::synth::{SynthConfig, SynthScene, generate};
+    use nephele_train::synth::{SynthConfig, SynthScene, generate};
     let scene: SynthScene = args.scene.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
     let (width, height) = parse_size(&args.size)?;
     let (train, val, test) = (args.train, args.val, args.test);
@@ -69,7 +69,7 @@ pub fn synth(args: SynthArgs) -> Result<()> {
 }
 
 pub fn dataset_info(args: DatasetInfoArgs) -> Result<()> {
-    use nephele_renderer::dataset::{Dataset, LoadOptions, inspect};
+    use nephele_train::dataset::{Dataset, LoadOptions, inspect};
     let info = inspect(&args.dataset, args.holdout_every)?;
     println!("{} ({:?}), aabb_scale {:?}", info.name, info.format, info.aabb_scale);
     for s in &info.splits {

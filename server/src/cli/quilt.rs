@@ -12,10 +12,10 @@ use glam::{DVec3, Vec3};
 use nephele_renderer::{
     Backend, Intrinsics, RenderSettings, View, ViewRequest,
     gpu::{GpuBackend, ngp::GpuNgp},
-    train::Trainer,
     views::{QuiltLayout, focal_distance},
 };
 use nephele_signaling::Mode;
+use nephele_train::Trainer;
 use serde::Serialize;
 
 use crate::{

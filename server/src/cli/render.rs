@@ -168,7 +168,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         eprintln!("note: no ray hit the object; check the camera");
     }
     println!(
-        "wrote {} ({}×{}{}, {}) — march {:.1} ms, network {:.1} ms, total {:.1} ms, {:.1}% of rays hit",
+        "wrote {} ({}×{}{}, {}) — march {:.1} ms, network {:.1} ms, total {:.1} ms, {:.1}% of rays hit{}",
         args.out.display(),
         frame.width,
         frame.height,
@@ -177,7 +177,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         s.march_ms,
         s.shade_ms,
         s.total_ms,
-        100.0 * s.hits as f64 / s.rays.max(1) as f64
+        100.0 * s.hits as f64 / s.rays.max(1) as f64,
+        if s.queries > 0 { format!(", {:.2} network queries per hit ray", s.queries as f64 / s.hits.max(1) as f64) } else { String::new() }
     );
     if !args.out.exists() {
         bail!("output was not written");

@@ -21,6 +21,13 @@
 //! The hash grid is the teacher's own encoding (i-NGP's); "trained on the bake lattice" is
 //! what `nephele train` does (see [`distill`]).
 //!
+//! Then the adaptive multi-hit rule (DESIGN §3, beyond the paper): the asset's settings
+//! (`nephele train`'s default, PSH 128) trained and rendered with each `--taus` value (τ = 1:
+//! one hit), each with its own geometry (the rule decides which bricks and PSH vertices are
+//! reachable). Every row reports the network queries per hit ray. `tradeoff_psnr_ms.png`
+//! plots PSNR against frame time, one marker per row, its size growing with the model's MB
+//! (NEPHELE's Fig. 13).
+//!
 //! The distance sweep renders an orbit view from far to filling the screen with i-NGP and
 //! the asset and plots ms/frame to a PNG.
 
@@ -37,19 +44,20 @@ use indicatif::ProgressBar;
 use serde::Serialize;
 
 use nephele_renderer::{
-    Asset, Backend, CpuBackend, Intrinsics, RenderSettings, View, ViewRequest,
+    Asset, Backend, CpuBackend, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
     gpu::{GpuBackend, ngp::GpuNgp},
     cubes::TextureCubes,
+    model::HitRule,
+};
+use nephele_train::{
+    Trainer,
     dataset::{Dataset, LoadOptions, Split},
-    train::{
-        Trainer,
-        distill::{self, DistillConfig, Distiller, Geometry, Student},
-        trainer::eval::{psnr, ssim},
-        variants::{self, VariantFrame},
-    },
+    distill::{self, DistillConfig, Distiller, Geometry, Student},
+    trainer::eval::{psnr, ssim},
+    variants::{self, VariantFrame},
 };
 
-use super::plot::{Labels, Series, line_chart};
+use super::plot::{Dot, DotSeries, Labels, Series, line_chart, scatter_chart};
 
 #[derive(Debug, Clone)]
 pub struct TradeoffOptions {
@@ -65,6 +73,9 @@ pub struct TradeoffOptions {
     pub out: PathBuf,
     /// Also time i-NGP and the asset on the wgpu backend at the benchmark size.
     pub gpu: bool,
+    /// Multi-hit thresholds of the τ rows (1 = one hit) and their most queries per ray.
+    pub taus: Vec<f32>,
+    pub max_hits: u32,
 }
 
 /// i-NGP and the i-NOLF asset on the wgpu backend, one frame each at the benchmark size.
@@ -89,6 +100,8 @@ pub struct Row {
     pub march_ms: f64,
     pub total_ms: f64,
     pub fps: f64,
+    /// Network queries per hit ray (1 without multi-hit; NaN where not counted).
+    pub queries_per_hit: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -108,6 +121,8 @@ pub struct Report {
     pub rows: Vec<Row>,
     pub sweep: Vec<SweepPoint>,
     pub plot: String,
+    /// PSNR against ms per frame, one marker per row.
+    pub trade_plot: String,
     pub gpu: Option<GpuRow>,
 }
 
@@ -178,6 +193,8 @@ enum Shading<'a> {
 
 struct Variant<'a> {
     name: String,
+    /// Marker label in the PSNR-against-ms plot.
+    tag: String,
     shading: Shading<'a>,
     model_bytes: u64,
     runtime_extra_bytes: u64,
@@ -249,41 +266,55 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     let density_stored = geometry.density.stored_bytes();
     let density_extra = widened(&geometry.density);
     let mut variants = vec![
-        Variant { name: "i-NGP".into(), shading: Shading::Ngp, model_bytes: ngp_model, runtime_extra_bytes: ngp_extra },
+        Variant { name: "i-NGP".into(), tag: "NGP".into(), shading: Shading::Ngp, model_bytes: ngp_model, runtime_extra_bytes: ngp_extra },
         Variant {
             name: "i-NOLF base (density network; hash-grid E_s, no diffuse net)".into(),
+            tag: "base".into(),
             shading: Shading::Base(&plain.distiller.student),
             model_bytes: ngp_model + plain.distiller.student.stored_bytes(),
             runtime_extra_bytes: ngp_extra,
         },
         Variant {
             name: "+ density cubes".into(),
+            tag: "DT".into(),
             shading: Shading::Cubes(&plain.distiller.student, None),
             model_bytes: density_stored + plain.distiller.student.stored_bytes(),
             runtime_extra_bytes: density_extra,
         },
         Variant {
             name: "+ diffuse MLP".into(),
+            tag: "DMLP".into(),
             shading: Shading::Cubes(&split.distiller.student, None),
             model_bytes: density_stored + split.distiller.student.stored_bytes(),
             runtime_extra_bytes: density_extra,
         },
         Variant {
             name: "+ diffuse cubes".into(),
+            tag: "DIFT".into(),
             shading: Shading::Cubes(&split.distiller.student, Some(&split_diffuse)),
             model_bytes: density_stored + split_diffuse.stored_bytes() + specular_bytes(&split.distiller.student),
             runtime_extra_bytes: density_extra + widened(&split_diffuse),
         },
     ];
-    let mut asset_row = |name: String, asset: Arc<Asset>| {
+    let mut asset_row = |name: String, tag: String, asset: Arc<Asset>| {
         let (model_bytes, runtime_extra_bytes) = asset_memory(&asset);
-        variants.push(Variant { name, shading: Shading::Asset(asset), model_bytes, runtime_extra_bytes });
+        variants.push(Variant { name, tag, shading: Shading::Asset(asset), model_bytes, runtime_extra_bytes });
     };
-    asset_row("+ PSH 256 (an asset)".into(), bake(&psh_at_hit)?);
+    asset_row("+ PSH 256 (an asset)".into(), "PSH".into(), bake(&psh_at_hit)?);
     let main = bake(&sized[0])?;
-    asset_row("+ diffuse net trained on its bake lattice, PSH 256 (the asset)".into(), main.clone());
+    asset_row("+ diffuse net trained on its bake lattice, PSH 256 (the asset)".into(), "L256".into(), main.clone());
     for s in &sized[1..] {
-        asset_row(format!("PSH {} (the asset at another N)", s.distiller.config.psh_grid), bake(s)?);
+        asset_row(format!("PSH {} (the asset at another N)", s.distiller.config.psh_grid), format!("L{}", s.distiller.config.psh_grid), bake(s)?);
+    }
+    // The multi-hit rule: `nephele train`'s settings at each τ, each with its own geometry.
+    for &tau in &opts.taus {
+        let hits = HitRule { tau, max_hits: if tau < 1.0 { opts.max_hits } else { 1 }, ..HitRule::default() };
+        let cfg = DistillConfig { hits, ..DistillConfig::default_for(opts.nolf_steps) };
+        let label = if hits.one_hit() { "one hit (τ = 1)".to_string() } else { format!("τ = {tau}, up to {} hits", hits.max_hits) };
+        let geometry = distill::geometry(&teacher, &train, &cfg).map_err(anyhow::Error::msg)?;
+        let student = train_student(&format!("PSH {}, {label}", cfg.psh_grid), cfg.clone(), &geometry, &train)?;
+        let asset = student.distiller.bake(geometry.density.clone(), geometry.step, &train.name, serde_json::json!({ "bench": "tradeoff", "student": student.label })).map_err(anyhow::Error::msg)?;
+        asset_row(format!("`nephele train` default (PSH {}), {label}", cfg.psh_grid), format!("T{tau}"), Arc::new(asset));
     }
     let render = |v: &Variant<'_>, rays: &[(Vec3, Vec3)]| -> VariantFrame {
         match &v.shading {
@@ -322,7 +353,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     let view = View { world_from_camera: first.view.world_from_camera, intrinsics };
     let rays = view_rays(&view);
     let settings = RenderSettings::default();
-    let time_on = |backend: &dyn Backend, asset: &Arc<Asset>, view: &View| -> Result<(f64, f64, f64)> {
+    let time_on = |backend: &dyn Backend, asset: &Arc<Asset>, view: &View| -> Result<RenderStats> {
         let prepared = backend.prepare(asset.clone())?;
         let req = [ViewRequest::new(*view).with_background(Vec3::ONE)];
         prepared.render(&req, &settings)?;
@@ -331,30 +362,43 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
             runs.push(prepared.render(&req, &settings)?);
         }
         runs.sort_by(|a, b| a.stats.total_ms.total_cmp(&b.stats.total_ms));
-        let s = runs[1].stats;
-        Ok((s.march_ms, s.total_ms, s.hits as f64 / s.rays.max(1) as f64))
+        Ok(runs[1].stats)
     };
     let backend = CpuBackend;
     let time_asset = |asset: &Arc<Asset>, view: &View| time_on(&backend, asset, view);
     let b = bar("time", variants.len() as u64);
     let mut rows = Vec::new();
     for (v, &(psnr, ssim)) in variants.iter().zip(&scores) {
-        let (march_ms, total_ms) = match &v.shading {
+        let (march_ms, total_ms, queries_per_hit) = match &v.shading {
             Shading::Asset(asset) => {
-                let (march, total, _) = time_asset(asset, &view)?;
-                (march, total)
+                let s = time_asset(asset, &view)?;
+                (s.march_ms, s.total_ms, s.queries as f64 / s.hits.max(1) as f64)
             }
             // The slow network variants once, the rest the median of three.
-            Shading::Ngp | Shading::Base(_) => {
+            Shading::Ngp => {
                 let (f, ms) = timed(1, || render(v, &rays));
-                (f.march_ms, ms)
+                (f.march_ms, ms, f64::NAN)
+            }
+            Shading::Base(_) => {
+                let (f, ms) = timed(1, || render(v, &rays));
+                (f.march_ms, ms, 1.0)
             }
             Shading::Cubes(..) => {
                 let (f, ms) = timed(3, || render(v, &rays));
-                (f.march_ms, ms)
+                (f.march_ms, ms, 1.0)
             }
         };
-        rows.push(Row { variant: v.name.clone(), psnr, ssim, model_bytes: v.model_bytes, runtime_extra_bytes: v.runtime_extra_bytes, march_ms, total_ms, fps: 1e3 / total_ms });
+        rows.push(Row {
+            variant: v.name.clone(),
+            psnr,
+            ssim,
+            model_bytes: v.model_bytes,
+            runtime_extra_bytes: v.runtime_extra_bytes,
+            march_ms,
+            total_ms,
+            fps: 1e3 / total_ms,
+            queries_per_hit,
+        });
         b.inc(1);
     }
     b.finish_and_clear();
@@ -370,7 +414,8 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     for i in 0..n {
         let distance = far * (near / far).powf(i as f64 / (n - 1) as f64);
         let v = View::look_at(centre + distance * dir, centre, DVec3::Z, intrinsics);
-        let (_, nolf_ms, coverage) = time_asset(&main, &v)?;
+        let s = time_asset(&main, &v)?;
+        let (nolf_ms, coverage) = (s.total_ms, s.hits as f64 / s.rays.max(1) as f64);
         let (_, ngp_ms) = timed(1, || variants::render_ngp(&teacher, &view_rays(&v), Vec3::ONE));
         sweep.push(SweepPoint { distance, coverage, ngp_ms, nolf_ms });
         b.inc(1);
@@ -393,11 +438,34 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         let ngp = GpuNgp::new(gpu_backend.ctx.clone(), &teacher)?;
         ngp.render(&rays[..64.min(rays.len())], Vec3::ONE)?; // compiles the kernel
         let (_, ngp_ms) = ngp.render(&rays, Vec3::ONE)?;
-        let (nolf_march_ms, nolf_ms, _) = time_on(&gpu_backend, &main, &view)?;
+        let s = time_on(&gpu_backend, &main, &view)?;
+        let (nolf_march_ms, nolf_ms) = (s.march_ms, s.total_ms);
         Some(GpuRow { adapter, ngp_ms, nolf_ms, nolf_march_ms })
     } else {
         None
     };
+    // The trade as a picture: PSNR against ms, marker size from the model's MB.
+    let trade_plot = opts.out.join("tradeoff_psnr_ms.png");
+    let dots = |pick: &dyn Fn(&Variant<'_>) -> bool| -> Vec<Dot> {
+        variants
+            .iter()
+            .zip(&rows)
+            .filter(|(v, _)| pick(v))
+            .map(|(v, r)| Dot { x: r.total_ms, y: r.psnr, radius_px: 2 + (r.model_bytes as f64 / 1048576.0).sqrt().round() as i64, label: v.tag.clone() })
+            .collect()
+    };
+    let multi = |v: &Variant<'_>| matches!(&v.shading, Shading::Asset(a) if !a.march.hits.one_hit());
+    let title = format!("held-out PSNR against {w}x{h} CPU frame time; marker size: model MB");
+    scatter_chart(
+        &trade_plot,
+        &Labels { title: &title, x: "ms per frame (log)", y: "PSNR dB" },
+        &[
+            DotSeries { name: "i-NGP".into(), rgb: [214, 39, 40], dots: dots(&|v| matches!(v.shading, Shading::Ngp)) },
+            DotSeries { name: "i-NOLF, one hit".into(), rgb: [31, 119, 180], dots: dots(&|v| !matches!(v.shading, Shading::Ngp) && !multi(v)) },
+            DotSeries { name: "i-NOLF, multi-hit".into(), rgb: [44, 160, 44], dots: dots(&multi) },
+        ],
+        true,
+    )?;
     let report = Report {
         dataset: opts.dataset.display().to_string(),
         eval_views: test.images.len(),
@@ -406,6 +474,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         rows,
         sweep,
         plot: plot.display().to_string(),
+        trade_plot: trade_plot.display().to_string(),
         gpu,
     };
     std::fs::write(opts.out.join("tradeoff.json"), serde_json::to_string_pretty(&report)?)?;
@@ -420,14 +489,15 @@ pub fn format_report(r: &Report) -> String {
         "Table 5 here: {} held-out views at {}x{} (PSNR/SSIM over white); times at {w}x{h}, CPU backend, same run\n",
         r.eval_views, r.eval_size.0, r.eval_size.1
     );
-    let _ = writeln!(s, "| variant | PSNR dB | SSIM | model MB | extra runtime MB | ray-march ms | total ms | FPS | speed-up vs i-NGP |");
-    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "| variant | PSNR dB | SSIM | model MB | extra runtime MB | queries per hit ray | ray-march ms | total ms | FPS | speed-up vs i-NGP |");
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let base = r.rows.first().map_or(f64::NAN, |x| x.total_ms);
     for x in &r.rows {
         let march = if x.march_ms.is_finite() { format!("{:.1}", x.march_ms) } else { "—".into() };
+        let queries = if x.queries_per_hit.is_finite() { format!("{:.2}", x.queries_per_hit) } else { "—".into() };
         let _ = writeln!(
             s,
-            "| {} | {:.2} | {:.4} | {:.2} | {:.2} | {march} | {:.1} | {:.2} | {:.1}× |",
+            "| {} | {:.2} | {:.4} | {:.2} | {:.2} | {queries} | {march} | {:.1} | {:.2} | {:.1}× |",
             x.variant,
             x.psnr,
             x.ssim,
@@ -449,6 +519,7 @@ pub fn format_report(r: &Report) -> String {
             g.ngp_ms / g.nolf_ms
         );
     }
+    let _ = writeln!(s, "\nFig. 13 here: PSNR against ms per frame, one marker per row, size from the model's MB: {}", r.trade_plot);
     let _ = writeln!(s, "\nFig. 14 here: ms per {w}x{h} frame as the camera approaches (red i-NGP, blue i-NOLF; plot {})\n", r.plot);
     let _ = writeln!(s, "| distance | screen coverage | i-NGP ms | i-NOLF ms | speed-up |");
     let _ = writeln!(s, "|---:|---:|---:|---:|---:|");

@@ -1,6 +1,6 @@
 //! `nephele train` and `nephele eval`: the whole pipeline from a posed-image dataset to a
 //! `.nolf` asset — the i-NGP field (checkpointed, resumable), then the i-NOLF stages of
-//! [`nephele_renderer::train::distill`] — each stage with a progress bar; and evaluation of
+//! [`nephele_train::distill`] — each stage with a progress bar; and evaluation of
 //! an asset or an i-NGP checkpoint on a dataset split (PSNR, SSIM, side-by-side images).
 
 use std::{
@@ -13,14 +13,12 @@ use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use nephele_renderer::{
-    Asset,
+use nephele_renderer::Asset;
+use nephele_train::{
+    TrainConfig, Trainer,
     dataset::{Dataset, LoadOptions, Split},
-    train::{
-        TrainConfig, Trainer,
-        distill::{self, DistillConfig, Distiller, geometry},
-        trainer::eval::{psnr, ssim, write_comparison_png},
-    },
+    distill::{self, DistillConfig, Distiller, geometry},
+    trainer::eval::{psnr, ssim, write_comparison_png},
 };
 
 /// File names inside the work directory.

@@ -8,10 +8,11 @@ use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use super::*;
 use crate::{
+    TrainConfig,
     dataset::{Dataset, LoadOptions, Split},
     synth::{self, SynthConfig, SynthScene},
     test_util::TempDir,
-    train::{TrainConfig, trainer::eval::psnr},
+    trainer::eval::psnr,
 };
 
 fn unit(rng: &mut SmallRng) -> Vec3 {
@@ -214,6 +215,50 @@ fn distill_psh_dilation_stays_where_rays_can_hit() {
     assert_eq!(psh_vertex_set(&bounds, 2, &density, &one, 1).len(), 8);
 }
 
+/// The student state goes through its container file and back; a file written before it had
+/// checksums still loads, and a corrupted one does not.
+#[test]
+fn distill_student_state_round_trips_and_old_files_load() {
+    let bounds = Aabb::cube(1.0);
+    let cfg = DistillConfig { psh_grid: 16, ..DistillConfig::tiny(10) };
+    let density = TextureCubes::bake(bounds, 4, 2, 1, |c| c == UVec3::splat(2), |_, out| out[0] = 1.0);
+    let p = Vec3::splat(0.1);
+    let ray = HitRay { image: 0, x_px: 0, y_px: 0, p_hit: p, alpha_c: 1.0, more: MoreHits::default() };
+    let hits = Hits { rays: vec![ray], tile_start: vec![0, 1], tiles_x: 1, tiles_y: 1, total_rays: 1, missed_opaque: 0 };
+    let psh_vertices = marked_cells(&bounds, cfg.psh_grid, 1, [p].into_iter(), 1);
+    let geometry = Geometry { bounds, step: 0.05, density, hits, psh_vertices };
+    let params = |s: &Student| -> Vec<f32> {
+        let net = s.diffuse.as_ref().unwrap();
+        [&net.grid.params[..], net.mlp.params(), s.encoding.params(), s.specular_mlp.params()].concat()
+    };
+    let mut trained = Distiller::new(geometry.clone(), cfg.clone()).unwrap();
+    trained.student.specular_mlp.update(|w| w.iter_mut().for_each(|v| *v += 0.5));
+    trained.step = 7;
+    let bytes = trained.student_bytes(3).unwrap();
+    let mut loaded = Distiller::new(geometry.clone(), cfg.clone()).unwrap();
+    assert_ne!(params(&loaded.student), params(&trained.student));
+    loaded.load_student(&bytes, 3).unwrap();
+    assert_eq!((params(&loaded.student), loaded.step), (params(&trained.student), 7));
+    assert!(loaded.load_student(&bytes, 4).unwrap_err().contains("step 3"));
+
+    // The same nets as written before the container: metadata without checksums.
+    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+    let mut meta: serde_json::Value = serde_json::from_str(&header.metadata().as_ref().unwrap()["nolf_student"]).unwrap();
+    meta.as_object_mut().unwrap().remove("checksums");
+    let info = std::collections::HashMap::from([("nolf_student".to_string(), meta.to_string())]);
+    let old = safetensors::serialize(file.tensors(), Some(info)).unwrap();
+    let mut from_old = Distiller::new(geometry.clone(), cfg.clone()).unwrap();
+    from_old.load_student(&old, 3).unwrap();
+    assert_eq!(params(&from_old.student), params(&trained.student));
+
+    let mut corrupt = bytes.clone();
+    let n = corrupt.len();
+    corrupt[n - 5] ^= 0x10;
+    let err = Distiller::new(geometry, cfg).unwrap().load_student(&corrupt, 3).unwrap_err();
+    assert!(err.contains("checksum"), "{err}");
+}
+
 const STUDENT_STEPS: u64 = 800;
 
 struct Pipeline {
@@ -236,7 +281,7 @@ fn pipeline() -> &'static Pipeline {
         synth::generate(&synth_cfg, &dir.0).unwrap();
         let train = Dataset::load(&dir.0, &LoadOptions::default()).unwrap();
         let test = Dataset::load(&dir.0, &LoadOptions::split(Split::Test)).unwrap();
-        let mut teacher = crate::train::Trainer::new(TrainConfig::tiny());
+        let mut teacher = crate::Trainer::new(TrainConfig::tiny());
         for _ in 0..400 {
             teacher.train_step(&train);
         }
@@ -255,7 +300,7 @@ fn pipeline() -> &'static Pipeline {
         let asset_psnr = score(&|im| render_image(&asset, im, Vec3::ONE));
         let mlp_psnr = score(&|im| {
             let rays: Vec<(Vec3, Vec3)> = im.rays().collect();
-            crate::train::variants::render_cubes(&distiller.student, &asset.density, None, step, asset.march.alpha_min, &rays, Vec3::ONE).rgb
+            crate::variants::render_cubes(&distiller.student, &asset.density, None, step, asset.march.alpha_min, &rays, Vec3::ONE).rgb
         });
         let train_psnr = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render_image(&asset, im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
         println!(

@@ -3,18 +3,16 @@
 //!
 //! 1. draw `rays_per_batch` pixels uniformly over all images and pixels of the dataset, each
 //!    with a random background colour: target `= rgb·a + bg·(1 − a)`;
-//! 2. march each ray through the scene box with the fixed step `δ = box diagonal /
-//!    steps_per_diagonal`, samples at `t₀ + (k + u)δ` (`u` uniform per ray; ½ when rendering,
-//!    the renderer's rule of DESIGN §3), kept only in occupied cells of the [`OccupancyGrid`];
-//! 3. σ front to back, `α_i = 1 − exp(−σ_i δ)`, `T_{i+1} = T_i (1 − α_i)`, stopping once
-//!    `T < early_stop_transmittance` (σ is evaluated a window of samples at a time, so the
-//!    samples behind that point cost nothing); colour only for the samples used;
-//!    `C = Σ T_i α_i c_i + T_end · bg`;
-//! 4. loss `= mean over rays and channels of (C − target)²`;
-//! 5. reverse accumulation: `∂C/∂c_i = T_i α_i`, and
+//! 2. the forward pass of [`NgpModel::forward_chunk`] (in the renderer crate): march each ray
+//!    through the scene box with a random offset within the first step, samples kept only in
+//!    occupied cells of the [`OccupancyGrid`], σ front to back until
+//!    `T < early_stop_transmittance`, colour only for the samples used, composited over the
+//!    ray's background: `C = Σ T_i α_i c_i + T_end · bg`;
+//! 3. loss `= mean over rays and channels of (C − target)²`;
+//! 4. reverse accumulation: `∂C/∂c_i = T_i α_i`, and
 //!    `∂C/∂σ_i = δ · (T_{i+1} c_i − Σ_{j>i} T_j α_j c_j − T_end bg)`, where the sum is
 //!    `C − (everything up to i)`; then back through the field to the MLPs and hash grid;
-//! 6. Adam on each parameter group (L2 on MLP weights only, zero-gradient grid entries skipped).
+//! 5. Adam on each parameter group (L2 on MLP weights only, zero-gradient grid entries skipped).
 //!
 //! Rays are processed in chunks in parallel (rayon); each chunk returns its own MLP gradients
 //! and per-sample encoding gradients, summed in chunk order, so a step is deterministic for
@@ -24,20 +22,18 @@
 use std::time::Instant;
 
 use glam::Vec3;
+use nephele_renderer::{
+    cubes::Aabb,
+    ngp::{Field, FieldConfig, HashGridConfig, NgpModel, NgpRay, OccupancyGrid},
+};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 use rayon::prelude::*;
 
-use super::{
-    adam::{Adam, AdamConfig, add_l2},
-    field::{Field, FieldConfig, FieldGradients, FieldTape},
-    hash_grid::HashGridConfig,
-    occupancy::OccupancyGrid,
-};
 use crate::{
-    cubes::Aabb,
+    adam::{Adam, AdamConfig, add_l2},
     dataset::Dataset,
-    model::clip_ray,
-    sh::{SH_COEFFS, sh4},
+    field::{FieldBackward, FieldGradients},
+    hash_grid::HashGridBackward,
 };
 
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -253,9 +249,6 @@ pub struct Trainer {
 /// Result of one chunk of rays.
 #[derive(Debug, Default)]
 struct ChunkOutput {
-    /// Composited colour over each ray's background.
-    rgb: Vec<Vec3>,
-    opacity: Vec<f32>,
     squared_error: f64,
     samples: usize,
     coloured_samples: usize,
@@ -265,9 +258,6 @@ struct ChunkOutput {
     density_grad: Vec<f32>,
     colour_grad: Vec<f32>,
 }
-
-/// Samples per ray and round of density evaluation in a training or rendering chunk.
-const DENSITY_WINDOW: usize = 32;
 
 /// A well-mixed 64-bit value from a seed and two counters (splitmix64 finaliser).
 pub(crate) fn mix(seed: u64, a: u64, b: u64) -> u64 {
@@ -290,30 +280,32 @@ impl Trainer {
         Self { config, field, occupancy, step: 0, grads, adam_grid, adam_density, adam_colour }
     }
 
+    /// The field, its occupancy grid and the march settings of the configuration, as the
+    /// renderer evaluates them.
+    pub fn model(&self) -> NgpModel<'_> {
+        NgpModel {
+            field: &self.field,
+            occupancy: &self.occupancy,
+            bounds: self.config.bounds,
+            steps_per_diagonal: self.config.steps_per_diagonal,
+            early_stop_transmittance: self.config.early_stop_transmittance,
+            rays_per_chunk: self.config.rays_per_chunk,
+        }
+    }
+
     /// Ray-marching step δ, scene units.
     pub fn step_size(&self) -> f32 {
-        self.config.bounds.size().length() / self.config.steps_per_diagonal as f32
+        self.model().step_size()
     }
 
     /// Scene point → unit cube of the hash grid.
     pub fn to_unit(&self, p_in_world: Vec3) -> Vec3 {
-        (p_in_world - self.config.bounds.min) / self.config.bounds.size()
+        self.model().to_unit(p_in_world)
     }
 
     /// Appends the unit-cube positions of the samples along one ray (occupied cells only).
     pub fn march(&self, origin: Vec3, dir: Vec3, jitter: f32, points01: &mut Vec<Vec3>) {
-        let Some((t0, t1)) = clip_ray(&self.config.bounds, origin, dir) else { return };
-        let delta = self.step_size();
-        for k in 0..=self.config.steps_per_diagonal {
-            let t = t0 + (k as f32 + jitter) * delta;
-            if t >= t1 {
-                break;
-            }
-            let p = origin + t * dir;
-            if self.occupancy.is_occupied(p) {
-                points01.push(self.to_unit(p).clamp(Vec3::ZERO, Vec3::ONE));
-            }
-        }
+        self.model().march(origin, dir, jitter, points01)
     }
 
     /// Random rays of the next batch (deterministic in seed and step).
@@ -336,74 +328,23 @@ impl Trainer {
     /// Forward (and with `loss_scale`, backward) over one chunk. `loss_scale` multiplies the
     /// summed squared error to give the batch loss.
     fn run_chunk(&self, rays: &[TrainRay], loss_scale: Option<f32>) -> ChunkOutput {
-        let delta = self.step_size();
-        let early_stop = self.config.early_stop_transmittance;
-        let mut marched = Vec::new();
-        let mut ranges = Vec::with_capacity(rays.len());
-        for ray in rays {
-            let start = marched.len();
-            self.march(ray.origin, ray.dir, ray.jitter, &mut marched);
-            ranges.push(start..marched.len());
-        }
-        // σ front to back in rounds of `DENSITY_WINDOW` samples per ray still transparent: a
-        // ray's samples behind the one that makes `T < early_stop` are never evaluated (early
-        // in training, before the occupancy grid has emptied the box, that is most of them).
-        // The tape's rows are the evaluated samples in evaluation order; `used[r]` lists ray
-        // r's rows front to back, up to and including the one that stopped it.
-        let mut tape = FieldTape::default();
-        let mut round = FieldTape::default();
-        let mut points01: Vec<Vec3> = Vec::new();
-        let mut used: Vec<Vec<u32>> = vec![Vec::new(); rays.len()];
-        let mut next: Vec<usize> = ranges.iter().map(|r| r.start).collect();
-        let mut transmittance = vec![1.0f32; rays.len()];
-        let mut owners = Vec::new();
-        loop {
-            let first_row = points01.len();
-            owners.clear();
-            for (r, range) in ranges.iter().enumerate() {
-                if transmittance[r] >= early_stop {
-                    let end = (next[r] + DENSITY_WINDOW).min(range.end);
-                    points01.extend_from_slice(&marched[next[r]..end]);
-                    owners.extend(std::iter::repeat_n(r, end - next[r]));
-                    next[r] = end;
-                }
-            }
-            if owners.is_empty() {
-                break;
-            }
-            self.field.forward_density(&points01[first_row..], &mut round);
-            tape.append_density(&round);
-            for (k, &r) in owners.iter().enumerate() {
-                if transmittance[r] >= early_stop {
-                    used[r].push((first_row + k) as u32);
-                    transmittance[r] *= (-round.sigma[k] * delta).exp();
-                }
-            }
-        }
-        // Only the used samples need a colour.
-        let view_sh: Vec<[f32; SH_COEFFS]> = rays.iter().zip(&used).flat_map(|(ray, u)| std::iter::repeat_n(sh4(ray.dir), u.len())).collect();
-        self.field.forward_colour(used.concat(), &view_sh, &mut tape);
+        let model = self.model();
+        let delta = model.step_size();
+        let marched: Vec<NgpRay> =
+            rays.iter().map(|r| NgpRay { origin: r.origin, dir: r.dir, background: r.background, jitter: r.jitter }).collect();
+        let forward = model.forward_chunk(&marched);
+        let (tape, used) = (&forward.tape, &forward.used);
 
-        let mut out = ChunkOutput { samples: points01.len(), coloured_samples: tape.coloured.len(), ..ChunkOutput::default() };
+        let mut out = ChunkOutput { samples: forward.points01.len(), coloured_samples: tape.coloured.len(), ..ChunkOutput::default() };
         let mut d_sigma = vec![0.0f32; if loss_scale.is_some() { tape.coloured.len() } else { 0 }];
         let mut d_rgb = vec![0.0f32; if loss_scale.is_some() { tape.rgb.len() } else { 0 }];
         let mut k0 = 0;
-        for (ray, rows) in rays.iter().zip(&used) {
+        for ((ray, rows), &c) in rays.iter().zip(used).zip(&forward.rgb) {
             let n = rows.len();
             let colour = |i: usize| Vec3::from_slice(&tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3]);
             let alpha = |i: usize| -(-tape.sigma[rows[i] as usize] * delta).exp_m1();
-            let mut transmittance = 1.0f32;
-            let mut c = Vec3::ZERO;
-            for i in 0..n {
-                let a = alpha(i);
-                c += transmittance * a * colour(i);
-                transmittance *= 1.0 - a;
-            }
-            c += transmittance * ray.background;
             let error = c - ray.target;
             out.squared_error += error.length_squared() as f64;
-            out.rgb.push(c);
-            out.opacity.push(1.0 - transmittance);
             if let Some(scale) = loss_scale {
                 let d_c = 2.0 * scale * error;
                 let mut transmittance = 1.0f32;
@@ -423,8 +364,8 @@ impl Trainer {
         if loss_scale.is_some() {
             out.density_grad = vec![0.0; self.field.density_mlp.params().len()];
             out.colour_grad = vec![0.0; self.field.colour_mlp.params().len()];
-            self.field.backward(&tape, &d_sigma, &d_rgb, &mut out.density_grad, &mut out.colour_grad, &mut out.d_encoded);
-            out.points01 = tape.coloured.iter().map(|&s| points01[s as usize]).collect();
+            self.field.backward(tape, &d_sigma, &d_rgb, &mut out.density_grad, &mut out.colour_grad, &mut out.d_encoded);
+            out.points01 = tape.coloured.iter().map(|&s| forward.points01[s as usize]).collect();
         }
         out
     }
@@ -455,16 +396,10 @@ impl Trainer {
         squared_error / (3 * rays.len().max(1)) as f64
     }
 
-    /// Renders rays (origin, unit direction) over `background`: (rgb, opacity) per ray.
+    /// Renders rays (origin, unit direction) over `background`: (rgb, opacity) per ray
+    /// ([`NgpModel::render`]).
     pub fn render(&self, rays: &[(Vec3, Vec3)], background: Vec3) -> Vec<(Vec3, f32)> {
-        let rays: Vec<TrainRay> =
-            rays.iter().map(|&(origin, dir)| TrainRay { origin, dir, target: Vec3::ZERO, background, jitter: 0.5 }).collect();
-        rays.par_chunks(self.config.rays_per_chunk)
-            .flat_map_iter(|c| {
-                let out = self.run_chunk(c, None);
-                out.rgb.into_iter().zip(out.opacity)
-            })
-            .collect()
+        self.model().render(rays, background)
     }
 
     /// Mean over images of the PSNR (dB) of the rendered image against the ground truth, both
@@ -539,9 +474,18 @@ impl Trainer {
     }
 }
 
+/// What the renderer needs to draw the trainer's field (e.g. `GpuNgp::new(ctx, &trainer)`).
+impl<'a> From<&'a Trainer> for NgpModel<'a> {
+    fn from(trainer: &'a Trainer) -> Self {
+        trainer.model()
+    }
+}
+
 pub mod checkpoint;
 pub mod eval;
 
+#[cfg(test)]
+mod gpu_tests;
 #[cfg(test)]
 mod tests;
 

@@ -28,14 +28,14 @@ use std::{
 };
 
 use glam::{DQuat, DVec3};
+use nephele_renderer::{
+    camera::{MAX_EDGE_PX, View},
+    render::to_unorm8,
+};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::{
-    camera::{MAX_EDGE_PX, View},
-    dataset::{Split, intrinsics_from_angle_x},
-    render::to_unorm8,
-};
+use crate::dataset::{Split, intrinsics_from_angle_x};
 
 /// Horizontal field of view of every camera, radians (the NeRF-synthetic value).
 pub const CAMERA_ANGLE_X: f64 = 0.6911112070083618;

@@ -28,24 +28,30 @@
 use std::time::Instant;
 
 use glam::{UVec3, Vec3};
-use rand::{Rng, SeedableRng, rngs::SmallRng};
-use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
-
-use super::{
-    adam::{Adam, AdamConfig, add_l2},
-    hash_grid::{HashGrid, HashGridConfig},
-    mlp::{Mlp, MlpTape},
-    trainer::{Trainer, mix},
-};
-use crate::{
+use nephele_renderer::{
     asset::{Asset, MarchMeta},
+    container::{self, Reader, Tensor, Verify},
     cubes::{Aabb, CubeStorage, TextureCubes},
-    dataset::Dataset,
     mlp::{HIDDEN, SpecularMlp},
     model::{self, RenderSettings},
+    ngp::{
+        hash_grid::{HashGrid, HashGridConfig},
+        mlp::{Mlp, MlpTape},
+    },
     psh::{PshError, SpatialHash},
     sh::{SH_COEFFS, sh4},
+};
+use rand::{Rng, SeedableRng, rngs::SmallRng};
+use rayon::prelude::*;
+use safetensors::Dtype;
+use serde::{Deserialize, Serialize};
+
+use crate::{
+    adam::{Adam, AdamConfig, add_l2},
+    dataset::Dataset,
+    hash_grid::HashGridBackward,
+    mlp::MlpBackward,
+    trainer::{Trainer, mix},
 };
 
 /// Settings of the i-NOLF stages.
@@ -186,7 +192,7 @@ impl DistillConfig {
         if !(1..=8).contains(&self.samples_per_cell) || self.density_dilation > 4 || self.diffuse_dilation > 4 {
             return Err("samples per cell or dilations out of range".into());
         }
-        if !(2..=crate::psh::MAX_COORD).contains(&self.psh_grid) || !(1..=32).contains(&self.psh_features) || self.psh_dilation > 4 {
+        if !(2..=nephele_renderer::psh::MAX_COORD).contains(&self.psh_grid) || !(1..=32).contains(&self.psh_features) || self.psh_dilation > 4 {
             return Err(format!("PSH grid {} / features {} / dilation {} out of range", self.psh_grid, self.psh_features, self.psh_dilation));
         }
         self.hits.validate()?;
@@ -989,7 +995,7 @@ impl Distiller {
         if let SpecularEncoding::Psh(psh) = &mut student.encoding {
             let keys = psh.keys.clone();
             for (slot, values) in psh.values.chunks_exact_mut(f as usize).enumerate() {
-                if keys[slot] != crate::psh::EMPTY_KEY {
+                if keys[slot] != nephele_renderer::psh::EMPTY_KEY {
                     values.iter_mut().for_each(|v| *v = rng.random_range(-1e-4..1e-4));
                 }
             }
@@ -1134,6 +1140,8 @@ impl Distiller {
 }
 
 pub const STUDENT_FORMAT: &str = "nephele-nolf-student";
+/// The `__metadata__` key of the student's JSON.
+const STUDENT_KEY: &str = "nolf_student";
 
 fn encoding_tensor(e: &SpecularEncoding) -> &'static str {
     match e {
@@ -1143,11 +1151,11 @@ fn encoding_tensor(e: &SpecularEncoding) -> &'static str {
 }
 
 impl Distiller {
-    /// The trained nets as safetensors (f32 tensors `diffuse_grid`, `diffuse_mlp`, `psh_values`
-    /// or `specular_grid`, `specular_mlp`; JSON metadata with the step and configuration). The geometry is not
-    /// stored: it is recomputed, deterministically, from the teacher. Written at the end of
-    /// the stage, so a resumed run skips a finished stage.
-    /// `teacher_step` names the i-NGP state the geometry came from.
+    /// The trained nets in a [`container`] file (f32 tensors `diffuse_grid`, `diffuse_mlp`,
+    /// `psh_values` or `specular_grid`, `specular_mlp`; JSON metadata `nolf_student` with the
+    /// step and configuration). The geometry is not stored: it is recomputed,
+    /// deterministically, from the teacher. Written at the end of the stage, so a resumed run
+    /// skips a finished stage. `teacher_step` names the i-NGP state the geometry came from.
     pub fn student_bytes(&self, teacher_step: u64) -> Result<Vec<u8>, String> {
         let s = &self.student;
         let bytes = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
@@ -1158,26 +1166,17 @@ impl Distiller {
         }
         data.push((encoding_tensor(&s.encoding), bytes(s.encoding.params())));
         data.push(("specular_mlp", bytes(s.specular_mlp.params())));
-        let views = data
-            .iter()
-            .map(|(name, b)| safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![b.len() / 4], b).map(|v| (*name, v)))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| e.to_string())?;
+        let tensors: Vec<Tensor<'_>> = data.iter().map(|(name, b)| Tensor { name, dtype: Dtype::F32, shape: vec![b.len() / 4], data: b }).collect();
         let meta = serde_json::json!({ "format": STUDENT_FORMAT, "version": 1, "step": self.step, "teacher_step": teacher_step, "config": self.config, "encoding_values": s.encoding.params().len() });
-        let info = [("nolf_student".to_string(), meta.to_string())].into_iter().collect();
-        safetensors::serialize(views, Some(info)).map_err(|e| e.to_string())
+        container::write(STUDENT_KEY, &meta, &tensors).map_err(|e| e.to_string())
     }
 
     /// Loads nets written by [`Self::student_bytes`] into this distiller (same configuration
-    /// and geometry). Every mismatch is an error naming what differs.
+    /// and geometry). Every mismatch is an error naming what differs. Files written before
+    /// student checkpoints had checksums still load.
     pub fn load_student(&mut self, bytes: &[u8], teacher_step: u64) -> Result<(), String> {
-        let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| format!("not a student checkpoint: {e}"))?;
-        let meta: serde_json::Value = header
-            .metadata()
-            .as_ref()
-            .and_then(|m| m.get("nolf_student"))
-            .and_then(|j| serde_json::from_str(j).ok())
-            .ok_or("not a student checkpoint: no nolf_student metadata")?;
+        let file = Reader::new(bytes, STUDENT_KEY, Verify::WhenPresent).map_err(|e| format!("not a student checkpoint: {e}"))?;
+        let meta: serde_json::Value = file.meta().map_err(|e| format!("not a student checkpoint: {e}"))?;
         if meta["format"] != STUDENT_FORMAT || meta["version"] != 1 {
             return Err(format!("unsupported student checkpoint {} v{}", meta["format"], meta["version"]));
         }
@@ -1188,12 +1187,11 @@ impl Distiller {
         if config != self.config {
             return Err("student checkpoint was trained with a different configuration; start afresh".into());
         }
-        let tensors = safetensors::SafeTensors::deserialize(bytes).map_err(|e| format!("not a student checkpoint: {e}"))?;
-        let read = |name: &str, want: usize| -> Result<Vec<f32>, String> {
-            let t = tensors.tensor(name).map_err(|e| format!("student checkpoint tensor {name}: {e}"))?;
-            let v: Vec<f32> = t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-            if t.dtype() != safetensors::Dtype::F32 || v.len() != want || v.iter().any(|x| !x.is_finite()) {
-                return Err(format!("student checkpoint tensor {name} does not fit this geometry ({} values, want {want})", v.len()));
+        let read = |name: &'static str, want: usize| -> Result<Vec<f32>, String> {
+            let data = file.tensor(name, Dtype::F32, &[want]).map_err(|e| format!("student checkpoint: {e}"))?;
+            let v: Vec<f32> = data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(format!("student checkpoint tensor {name} has non-finite values"));
             }
             Ok(v)
         };

@@ -5,10 +5,13 @@
 use std::{sync::OnceLock, time::Instant};
 
 use glam::Vec3;
+use nephele_renderer::{
+    ngp::{DENSITY_WINDOW, FieldTape, field::GEO_FEATURES},
+    sh::sh4,
+};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use super::*;
-use crate::train::field::GEO_FEATURES;
 use crate::{
     dataset::{Dataset, LoadOptions},
     synth::{self, SynthConfig, SynthScene},

@@ -30,11 +30,10 @@ use std::{
 };
 
 use glam::{DMat4, Vec3};
+use nephele_renderer::camera::{Intrinsics, MAX_EDGE_PX, PoseError, View};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
-
-use crate::camera::{Intrinsics, MAX_EDGE_PX, PoseError, View};
 
 /// Which part of a dataset.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]

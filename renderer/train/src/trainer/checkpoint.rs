@@ -4,26 +4,29 @@
 //! holds the seed; batches and occupancy samples are drawn from `(seed, step)`, so there is
 //! no further RNG state). Gradients are not stored: Adam leaves them zeroed after each step.
 //!
-//! Like the `.nolf` asset, `__metadata__` holds versioned JSON (`ngp_checkpoint`) and its
-//! SHA-256 (`ngp_checkpoint_sha256`); the JSON holds a SHA-256 per tensor. Loading checks the
-//! container, the checksums, the configuration's ranges and every tensor's dtype and shape
-//! against the configuration before allocating anything sized by it. Every failure is a
-//! [`CheckpointError`]; nothing panics on a bad file.
+//! The file is the renderer's [`container`], like the `.nolf` asset: `__metadata__` holds
+//! versioned JSON (`ngp_checkpoint`) and its SHA-256 (`ngp_checkpoint_sha256`); the JSON holds
+//! a SHA-256 per tensor. Loading checks the container, the checksums, the configuration's
+//! ranges and every tensor's dtype and shape against the configuration before allocating
+//! anything sized by it. Every failure is a [`CheckpointError`]; nothing panics on a bad file.
 
-use std::{collections::BTreeMap, path::Path};
+use std::path::Path;
 
-use safetensors::{Dtype, SafeTensors, tensor::TensorView};
-use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
-
-use super::{Trainer, TrainConfig};
-use crate::{
+use nephele_renderer::{
+    container::{self, ContainerError, Reader, Tensor, Verify},
+    ngp::{OccupancyGrid, field::GEO_FEATURES, hash_grid::FEATURES_PER_LEVEL, mlp::Mlp},
     sh::SH_COEFFS,
-    train::{adam::Adam, field::GEO_FEATURES, hash_grid::FEATURES_PER_LEVEL, mlp::Mlp, occupancy::OccupancyGrid},
 };
+use safetensors::Dtype;
+use serde::{Deserialize, Serialize};
+
+use super::{TrainConfig, Trainer};
+use crate::adam::Adam;
 
 pub const CHECKPOINT_FORMAT: &str = "nephele-ngp-checkpoint";
 pub const CHECKPOINT_VERSION: u32 = 1;
+/// The `__metadata__` key of the JSON.
+const META_KEY: &str = "ngp_checkpoint";
 /// Files above this size are refused before reading.
 pub const MAX_CHECKPOINT_BYTES: u64 = 4 << 30;
 
@@ -35,25 +38,18 @@ pub enum CheckpointError {
     Write { path: String, source: std::io::Error },
     #[error("checkpoint is {0} bytes; the limit is {MAX_CHECKPOINT_BYTES}")]
     TooLarge(u64),
-    #[error("not a valid checkpoint file (truncated or not safetensors): {0}")]
-    Container(String),
+    /// The container, the metadata checksum, or a tensor's dtype, shape or checksum.
+    #[error("not a valid checkpoint file: {0}")]
+    Container(#[from] ContainerError),
     #[error("checkpoint format {found:?} version {version} is not supported (this build reads {CHECKPOINT_FORMAT:?} version {CHECKPOINT_VERSION})")]
     Version { found: String, version: u32 },
-    #[error("checkpoint metadata is corrupt: {0}")]
-    Metadata(String),
-    #[error("checkpoint tensor {0:?} is missing")]
-    Missing(String),
-    #[error("checkpoint tensor {name:?} has dtype {found:?} and shape {shape:?}; expected {want_dtype:?} {want_shape:?}")]
-    Shape { name: String, found: Dtype, shape: Vec<usize>, want_dtype: Dtype, want_shape: Vec<usize> },
-    #[error("checkpoint tensor {0:?} fails its checksum (file corrupted)")]
-    Checksum(String),
     #[error("checkpoint content is invalid: {0}")]
     Invalid(String),
     #[error("checkpoint was trained with a different configuration ({differs}); use the same preset or start afresh")]
     ConfigMismatch { differs: String },
 }
 
-/// The JSON in the safetensors header.
+/// The JSON in the safetensors header (followed there by the tensor checksums).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CheckpointMeta {
     pub format: String,
@@ -67,12 +63,6 @@ pub struct CheckpointMeta {
     pub config: TrainConfig,
     /// Free-form: dataset, preset, … (not used when loading).
     pub provenance: serde_json::Value,
-    /// Hex SHA-256 of each tensor's bytes.
-    pub checksums: BTreeMap<String, String>,
-}
-
-fn sha_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn f32_bytes(v: &[f32]) -> Vec<u8> {
@@ -159,8 +149,7 @@ impl Trainer {
             f32_bytes(self.occupancy.densities()),
             u64_bytes(self.occupancy.bits()),
         ];
-        let shapes = expected_tensors(&self.config);
-        let mut meta = CheckpointMeta {
+        let meta = CheckpointMeta {
             format: CHECKPOINT_FORMAT.into(),
             version: CHECKPOINT_VERSION,
             stage: "ngp".into(),
@@ -168,17 +157,10 @@ impl Trainer {
             adam_steps: [self.adam_grid.steps(), self.adam_density.steps(), self.adam_colour.steps()],
             config: self.config.clone(),
             provenance,
-            checksums: BTreeMap::new(),
         };
-        let mut views = Vec::with_capacity(data.len());
-        for ((name, dtype, shape), bytes) in shapes.into_iter().zip(&data) {
-            meta.checksums.insert(name.into(), sha_hex(bytes));
-            let view = TensorView::new(dtype, shape, bytes).map_err(|e| CheckpointError::Invalid(format!("{name}: {e}")))?;
-            views.push((name, view));
-        }
-        let json = serde_json::to_string(&meta).map_err(|e| CheckpointError::Invalid(e.to_string()))?;
-        let info = [("ngp_checkpoint_sha256".to_string(), sha_hex(json.as_bytes())), ("ngp_checkpoint".to_string(), json)];
-        safetensors::serialize(views, Some(info.into_iter().collect())).map_err(|e| CheckpointError::Container(e.to_string()))
+        let tensors: Vec<Tensor<'_>> =
+            expected_tensors(&self.config).into_iter().zip(&data).map(|((name, dtype, shape), bytes)| Tensor { name, dtype, shape, data: bytes }).collect();
+        Ok(container::write(META_KEY, &meta, &tensors)?)
     }
 
     /// Writes a checkpoint atomically (to a temporary file beside `path`, then renamed), so an
@@ -205,14 +187,8 @@ impl Trainer {
 
     /// Parses and validates checkpoint bytes; see [`Self::load_checkpoint`].
     pub fn from_checkpoint_bytes(bytes: &[u8], expected: Option<&TrainConfig>) -> Result<(Self, CheckpointMeta), CheckpointError> {
-        let file = SafeTensors::deserialize(bytes).map_err(|e| CheckpointError::Container(e.to_string()))?;
-        let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| CheckpointError::Container(e.to_string()))?;
-        let info = header.metadata().as_ref().ok_or_else(|| CheckpointError::Metadata("no __metadata__".into()))?;
-        let json = info.get("ngp_checkpoint").ok_or_else(|| CheckpointError::Metadata("no ngp_checkpoint entry (not a trainer checkpoint?)".into()))?;
-        if info.get("ngp_checkpoint_sha256").map(String::as_str) != Some(sha_hex(json.as_bytes()).as_str()) {
-            return Err(CheckpointError::Metadata("checksum mismatch".into()));
-        }
-        let meta: CheckpointMeta = serde_json::from_str(json).map_err(|e| CheckpointError::Metadata(e.to_string()))?;
+        let file = Reader::new(bytes, META_KEY, Verify::Always)?;
+        let meta: CheckpointMeta = file.meta()?;
         if meta.format != CHECKPOINT_FORMAT || meta.version != CHECKPOINT_VERSION {
             return Err(CheckpointError::Version { found: meta.format, version: meta.version });
         }
@@ -222,23 +198,10 @@ impl Trainer {
         {
             return Err(CheckpointError::ConfigMismatch { differs: config_differences(&meta.config, want) });
         }
-        let mut tensors = Vec::new();
-        for (name, dtype, shape) in expected_tensors(&meta.config) {
-            let view = file.tensor(name).map_err(|_| CheckpointError::Missing(name.into()))?;
-            if view.dtype() != dtype || view.shape() != shape.as_slice() {
-                return Err(CheckpointError::Shape {
-                    name: name.into(),
-                    found: view.dtype(),
-                    shape: view.shape().to_vec(),
-                    want_dtype: dtype,
-                    want_shape: shape,
-                });
-            }
-            if meta.checksums.get(name).map(String::as_str) != Some(sha_hex(view.data()).as_str()) {
-                return Err(CheckpointError::Checksum(name.into()));
-            }
-            tensors.push(view.data());
-        }
+        let tensors = expected_tensors(&meta.config)
+            .into_iter()
+            .map(|(name, dtype, shape)| file.tensor(name, dtype, &shape))
+            .collect::<Result<Vec<_>, _>>()?;
         let f = |i: usize| f32_from(tensors[i]);
         let params = [f(0), f(1), f(2)];
         if params.iter().flatten().any(|v| !v.is_finite()) {
@@ -306,14 +269,14 @@ mod tests {
         // Truncated anywhere: an error, never a panic.
         for cut in [0, 7, 100, bytes.len() / 2, bytes.len() - 1] {
             let err = Trainer::from_checkpoint_bytes(&bytes[..cut], None).unwrap_err();
-            assert!(matches!(err, CheckpointError::Container(_)), "cut {cut}: {err}");
+            assert!(matches!(err, CheckpointError::Container(ContainerError::Parse(_))), "cut {cut}: {err}");
         }
         // A flipped byte in the tensor data fails a checksum.
         let mut corrupt = bytes.clone();
         let n = corrupt.len();
         corrupt[n - 9] ^= 0x40;
         let err = Trainer::from_checkpoint_bytes(&corrupt, None).unwrap_err();
-        assert!(matches!(err, CheckpointError::Checksum(_)), "{err}");
+        assert!(matches!(err, CheckpointError::Container(ContainerError::Checksum(_))), "{err}");
         // A different configuration is named.
         let err = Trainer::from_checkpoint_bytes(&bytes, Some(&TrainConfig::tiny())).unwrap_err();
         assert!(matches!(&err, CheckpointError::ConfigMismatch { differs } if differs.contains("rays_per_batch")), "{err}");

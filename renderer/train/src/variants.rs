@@ -16,16 +16,16 @@
 use std::time::Instant;
 
 use glam::Vec3;
-use rayon::prelude::*;
-
-use super::{
-    distill::{MoreHits, Student, StudentRay},
-    field::FieldTape,
-    trainer::Trainer,
-};
-use crate::{
+use nephele_renderer::{
     cubes::{Aabb, TextureCubes},
     model::{self, MarchHit, RenderSettings, clip_ray},
+    ngp::FieldTape,
+};
+use rayon::prelude::*;
+
+use crate::{
+    distill::{MoreHits, Student, StudentRay},
+    trainer::Trainer,
 };
 
 /// A rendered ray batch: interleaved RGB, and milliseconds spent finding hits and in total.
@@ -179,7 +179,7 @@ pub fn render_ngp(teacher: &Trainer, rays: &[(Vec3, Vec3)], background: Vec3) ->
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::train::TrainConfig;
+    use crate::TrainConfig;
 
     /// A network of constant density σ = 2 (zero encoding, raw log-density bias ln 2): the
     /// network march and the march of cubes baked from it see the same σ (exact in f16), so
@@ -189,11 +189,11 @@ mod tests {
     fn network_march_agrees_with_cubes_baked_from_it() {
         let mut teacher = Trainer::new(TrainConfig::tiny());
         teacher.field.grid.params.fill(0.0);
-        let raw_bias = teacher.field.density_mlp.params().len() - crate::train::field::GEO_FEATURES;
+        let raw_bias = teacher.field.density_mlp.params().len() - nephele_renderer::ngp::field::GEO_FEATURES;
         teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
         let bounds = Aabb::cube(1.0);
-        let cfg = crate::train::distill::DistillConfig { density_grid: 8, density_brick: 4, ..crate::train::distill::DistillConfig::tiny(1) };
-        let density = crate::train::distill::bake_density(&teacher, bounds, &cfg);
+        let cfg = crate::distill::DistillConfig { density_grid: 8, density_brick: 4, ..crate::distill::DistillConfig::tiny(1) };
+        let density = crate::distill::bake_density(&teacher, bounds, &cfg);
         assert_eq!(density.brick_count(), 512);
         let step = cfg.step(&bounds);
         let settings = RenderSettings::default();

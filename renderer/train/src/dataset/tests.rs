@@ -4,15 +4,14 @@
 use std::path::Path;
 
 use glam::{DVec3, Vec3};
+use nephele_renderer::camera::{Instance, RayFrame};
 use serde_json::{Value, json};
 
 use super::*;
 use crate::{
-    camera::{Instance, RayFrame},
     synth::{self, SynthConfig, SynthScene},
+    test_util::TempDir,
 };
-
-use crate::test_util::TempDir;
 
 fn tiny(scene: SynthScene) -> SynthConfig {
     SynthConfig { scene, width: 32, height: 32, n_train: 4, n_val: 2, n_test: 2, seed: 11 }
@@ -225,7 +224,7 @@ fn instant_ngp_transforms_load() {
         let intrinsics = Intrinsics { fx: 30.0, fy: 32.0, cx: 11.5, cy: 8.25, width, height };
         let view = View::orbit(DVec3::ZERO, 4.0, 72.0 * i as f64, 20.0, intrinsics);
         let rgba = synth::render_view(SynthScene::Glossy, &view);
-        let bytes: Vec<u8> = rgba.iter().map(|&v| crate::render::to_unorm8(v)).collect();
+        let bytes: Vec<u8> = rgba.iter().map(|&v| nephele_renderer::render::to_unorm8(v)).collect();
         let name = format!("images/frame_{i:03}.png");
         write_png(&dir.0.join(&name), width, height, png::ColorType::Rgba, png::BitDepth::Eight, &bytes);
         let rows: Vec<[f64; 4]> = (0..4).map(|r| view.world_from_camera.row(r).to_array()).collect();

@@ -1,16 +1,14 @@
-//! The train-time tiny MLP: fully connected layers, ReLU on hidden layers, a linear output
-//! (the caller applies its own output activation), in f32. Separate from the inference
-//! [`crate::mlp::SpecularMlp`] because training needs a batched forward that keeps every
-//! activation and a hand-derived backward pass.
+//! The i-NGP tiny MLP: fully connected layers, ReLU on hidden layers, a linear output (the
+//! caller applies its own output activation), in f32. Separate from the inference
+//! [`crate::mlp::SpecularMlp`] because the i-NGP field runs batches and keeps every
+//! activation (an [`MlpTape`]) for the backward pass, which is in the `nephele-train` crate.
 //!
 //! Batches are row-major (one sample per row) and every layer is a small matrix product,
-//! done by [`gemm`] / [`gemm_tn`]: register tiles of 4 rows × 8 columns whose inner loop the
-//! compiler turns into SIMD, so weights and activations are loaded once per tile rather than
-//! once per multiply-add. Forward: `Y = X·Wᵀ + b` (a transposed copy of each weight matrix is
-//! kept for it), ReLU on hidden layers. Backward, layer by layer from the last:
-//! `δ = ∂loss/∂pre-activation`, `∂b += Σ_rows δ`, `∂W += δᵀ·X`, `∂X = δ·W`, and through the
-//! ReLU `δ_prev = ∂X ⊙ [X > 0]`. Callers split big batches into chunks and run them in
-//! parallel, each chunk with its own gradient buffer, then sum the buffers in chunk order.
+//! done by [`gemm`]: register tiles of 4 rows × 8 columns whose inner loop the compiler turns
+//! into SIMD, so weights and activations are loaded once per tile rather than once per
+//! multiply-add. Forward: `Y = X·Wᵀ + b` (a transposed copy of each weight matrix is kept for
+//! it), ReLU on hidden layers. [`gemm_tn`] (`δᵀ·X`, the weight gradient) sits beside it so
+//! both kernels share one run-time choice of vector width.
 
 use rand::Rng;
 
@@ -161,57 +159,6 @@ impl Mlp {
             }
             at_params += inputs * outputs + outputs;
             at_transposed += inputs * outputs;
-        }
-    }
-
-    /// Backward pass: adds `∂loss/∂params` to `grad` (layout of [`Self::params`]) given
-    /// `d_output` (`rows × output width`, ∂loss/∂raw output) and the tape of the forward pass
-    /// of `input`. Writes `∂loss/∂input` into `d_input` when given (`rows × input width`).
-    pub fn backward(&self, input: &[f32], tape: &MlpTape, d_output: &[f32], grad: &mut [f32], mut d_input: Option<&mut [f32]>) {
-        let rows = tape.rows;
-        let layers = self.widths.len() - 1;
-        assert_eq!(grad.len(), self.params.len());
-        assert_eq!(input.len(), rows * self.input_width());
-        assert_eq!(d_output.len(), rows * self.output_width());
-        let mut offsets = Vec::with_capacity(layers);
-        let mut at = 0;
-        for w in self.widths.windows(2) {
-            offsets.push(at);
-            at += w[0] * w[1] + w[1];
-        }
-        let mut delta = d_output.to_vec();
-        let mut d_x = Vec::new();
-        for l in (0..layers).rev() {
-            let (inputs, outputs) = (self.widths[l], self.widths[l + 1]);
-            let x = if l == 0 { input } else { &tape.layers[l - 1][..] };
-            let weights = &self.params[offsets[l]..offsets[l] + inputs * outputs];
-            let (g_weights, g_bias) = grad[offsets[l]..offsets[l] + inputs * outputs + outputs].split_at_mut(inputs * outputs);
-            for d in delta.chunks_exact(outputs) {
-                for (g, &v) in g_bias.iter_mut().zip(d) {
-                    *g += v;
-                }
-            }
-            gemm_tn(&delta, x, g_weights, rows, outputs, inputs);
-            let out: &mut Vec<f32> = match (l, d_input.as_deref_mut()) {
-                (0, Some(d)) => {
-                    assert_eq!(d.len(), input.len());
-                    d.fill(0.0);
-                    gemm(&delta, weights, d, outputs, inputs);
-                    break;
-                }
-                (0, None) => break,
-                _ => &mut d_x,
-            };
-            out.clear();
-            out.resize(rows * inputs, 0.0);
-            gemm(&delta, weights, out, outputs, inputs);
-            // Through the ReLU of the previous layer: its output x is 0 where it was cut.
-            for (d, &xi) in out.iter_mut().zip(x) {
-                if xi <= 0.0 {
-                    *d = 0.0;
-                }
-            }
-            std::mem::swap(&mut delta, &mut d_x);
         }
     }
 }
@@ -408,59 +355,6 @@ mod tests {
         }
     }
 
-    /// loss = Σ r · output, in f64 over the f32 forward pass.
-    fn loss(mlp: &Mlp, x: &[f32], r: &[f32]) -> f64 {
-        let mut tape = MlpTape::default();
-        mlp.forward(x, &mut tape);
-        tape.output().iter().zip(r).map(|(&o, &r)| o as f64 * r as f64).sum()
-    }
-
-    fn relative_error(analytic: f64, numeric: f64) -> f64 {
-        (analytic - numeric).abs() / analytic.abs().max(numeric.abs()).max(1e-3)
-    }
-
-    #[test]
-    fn train_mlp_gradients_match_finite_differences() {
-        let widths = [6, 32, 32, 4];
-        let (mut mlp, x, r) = setup(&widths, 8, 2);
-        let mut tape = MlpTape::default();
-        mlp.forward(&x, &mut tape);
-        let mut grad = vec![0.0; mlp.params().len()];
-        let mut d_x = vec![0.0; x.len()];
-        mlp.backward(&x, &tape, &r, &mut grad, Some(&mut d_x));
-        // ReLU kinks make a few finite differences meaningless; demand 95 % agreement
-        // (a wrong backward fails nearly all of them).
-        let eps = 1e-3f32;
-        let (mut checked, mut agreed) = (0, 0);
-        let mut rng = SmallRng::seed_from_u64(9);
-        for _ in 0..200 {
-            let i = rng.random_range(0..grad.len());
-            let keep = mlp.params()[i];
-            mlp.update(|p| p[i] = keep + eps);
-            let up = loss(&mlp, &x, &r);
-            mlp.update(|p| p[i] = keep - eps);
-            let down = loss(&mlp, &x, &r);
-            mlp.update(|p| p[i] = keep);
-            let fd = (up - down) / (2.0 * eps as f64);
-            checked += 1;
-            agreed += (relative_error(grad[i] as f64, fd) < 1e-2) as usize;
-        }
-        assert!(agreed * 100 >= checked * 95, "params: {agreed} of {checked} agree");
-        let (mut checked, mut agreed) = (0, 0);
-        let mut x_moved = x.clone();
-        for i in 0..x.len() {
-            x_moved[i] = x[i] + eps;
-            let up = loss(&mlp, &x_moved, &r);
-            x_moved[i] = x[i] - eps;
-            let down = loss(&mlp, &x_moved, &r);
-            x_moved[i] = x[i];
-            let fd = (up - down) / (2.0 * eps as f64);
-            checked += 1;
-            agreed += (relative_error(d_x[i] as f64, fd) < 1e-2) as usize;
-        }
-        assert!(agreed * 100 >= checked * 95, "inputs: {agreed} of {checked} agree");
-    }
-
     #[test]
     fn train_mlp_gemm_matches_plain_products() {
         let mut rng = SmallRng::seed_from_u64(4);
@@ -487,32 +381,5 @@ mod tests {
             gemm_tn(&a, &b2, &mut chosen_tn, rows, k, n);
             assert_eq!((plain, plain_tn), (chosen, chosen_tn), "{rows}x{k}x{n}");
         }
-    }
-
-    #[test]
-    fn train_mlp_backward_accumulates_and_gathers() {
-        let (mlp, x, mut r) = setup(&[5, 8, 2], 4, 3);
-        r[2..4].fill(0.0); // row 1 has no gradient
-        let mut tape = MlpTape::default();
-        mlp.forward(&x, &mut tape);
-        let mut once = vec![0.0; mlp.params().len()];
-        let mut d_x = vec![1.0; x.len()];
-        mlp.backward(&x, &tape, &r, &mut once, Some(&mut d_x));
-        assert!(d_x[5..10].iter().all(|&v| v == 0.0));
-        let mut twice = once.clone();
-        mlp.backward(&x, &tape, &r, &mut twice, None);
-        for (a, b) in once.iter().zip(&twice) {
-            assert!((2.0 * a - b).abs() <= 1e-6 * a.abs().max(1.0));
-        }
-        // A gathered tape backpropagates like the rows it came from.
-        let rows = [3u32, 2, 0];
-        let (x_sub, r_sub) = (gather_rows(&x, 5, &rows), gather_rows(&r, 2, &rows));
-        let mut sub = vec![0.0; mlp.params().len()];
-        mlp.backward(&x_sub, &tape.gather(&rows), &r_sub, &mut sub, None);
-        for (a, b) in once.iter().zip(&sub) {
-            assert!((a - b).abs() <= 1e-5 * a.abs().max(1.0), "{a} vs {b}");
-        }
-        let weight_count: usize = mlp.weight_ranges().iter().map(|r| r.len()).sum();
-        assert_eq!(weight_count, 5 * 8 + 8 * 2);
     }
 }

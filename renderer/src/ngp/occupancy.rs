@@ -1,11 +1,12 @@
-//! Occupancy grid for empty-space skipping during training (instant-ngp, Müller et al. 2022,
+//! Occupancy grid for empty-space skipping (instant-ngp, Müller et al. 2022,
 //! appendix E.2): `res³` cells over the scene box, each holding a running density estimate
 //! and one occupancy bit. Every update decays all estimates by a factor (0.95), evaluates σ
 //! at one random point in each chosen cell, keeps the maximum of the decayed and the new
 //! value, and marks a cell occupied when its estimate exceeds
 //! `min(mean estimate, min_optical_thickness / step)` — i.e. when a step through it would
 //! be at least that opaque. The grid starts fully occupied, and a cell never evaluated stays
-//! occupied. Training rays take samples only in occupied cells.
+//! occupied. The trainer runs the updates; training and rendering take samples only in
+//! occupied cells.
 
 use glam::{UVec3, Vec3};
 use rand::Rng;
