@@ -170,12 +170,14 @@ impl Tracker for () {
     fn sample(&mut self, _t: f32, _w: f32, _new_max: bool) {}
 }
 
-/// A run of samples: its summed weight and its heaviest sample.
+/// A run of samples: its summed weight, its heaviest sample, and where it starts and ends.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Segment {
     pub weight: f32,
     pub peak_w: f32,
     pub peak_t: f32,
+    pub first_t: f32,
+    pub last_t: f32,
 }
 
 /// The segment tracker of the multi-hit rule: at most [`MAX_SEGMENTS`] closed segments (when
@@ -217,22 +219,29 @@ impl Segments {
         }
     }
 
-    /// The queries under `rule`, from the march's result `m`.
-    pub fn choose(mut self, m: MarchHit, rule: &HitRule) -> MultiHit {
+    /// The segments queried under `rule` for a ray of coarse opacity `alpha_c`, primary
+    /// first, and how many there are (0 without any weight).
+    pub fn select(mut self, alpha_c: f32, rule: &HitRule) -> ([Segment; MAX_HITS], usize) {
         self.close();
-        let mut out = MultiHit { march: m, ..Default::default() };
-        let Some(p) = self.primary else { return out };
+        let Some(p) = self.primary else { return ([Segment::default(); MAX_HITS], 0) };
         let mut chosen = [self.closed[p]; MAX_HITS];
         let mut n = 1;
         let mut rest: Vec<Segment> = (0..self.n_closed).filter(|&i| i != p).map(|i| self.closed[i]).collect();
         rest.sort_by(|a, b| b.weight.total_cmp(&a.weight));
         for seg in rest {
-            if n >= rule.max_hits as usize || seg.weight < rule.tau * m.alpha_c {
+            if n >= rule.max_hits as usize || seg.weight < rule.tau * alpha_c {
                 break;
             }
             chosen[n] = seg;
             n += 1;
         }
+        (chosen, n)
+    }
+
+    /// The queries under `rule`, from the march's result `m`.
+    pub fn choose(self, m: MarchHit, rule: &HitRule) -> MultiHit {
+        let mut out = MultiHit { march: m, ..Default::default() };
+        let (chosen, n) = self.select(m.alpha_c, rule);
         let total: f32 = chosen[..n].iter().map(|s| s.weight).sum();
         for (i, seg) in chosen[..n].iter().enumerate() {
             out.t[i] = seg.peak_t;
@@ -252,8 +261,9 @@ impl Tracker for Segments {
         if self.open.is_some_and(|o| t - o.peak_t > self.gap_t) {
             self.close();
         }
-        let open = self.open.get_or_insert(Segment { weight: 0.0, peak_w: 0.0, peak_t: t });
+        let open = self.open.get_or_insert(Segment { peak_t: t, first_t: t, ..Segment::default() });
         open.weight += w;
+        open.last_t = t;
         if w > open.peak_w {
             (open.peak_w, open.peak_t) = (w, t);
         }

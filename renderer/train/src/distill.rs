@@ -29,6 +29,7 @@ use std::time::Instant;
 
 use glam::{UVec3, Vec3};
 use nephele_renderer::{
+    View,
     asset::{Asset, MarchMeta},
     container::{self, Reader, Tensor, Verify},
     cubes::{Aabb, CubeStorage, TextureCubes},
@@ -48,7 +49,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     adam::{Adam, AdamConfig, add_l2},
-    dataset::Dataset,
+    dataset::{Dataset, DatasetImage},
     hash_grid::HashGridBackward,
     mlp::MlpBackward,
     trainer::{Trainer, mix},
@@ -100,6 +101,10 @@ pub struct DistillConfig {
     /// ([`model::HitRule`]; absent in older checkpoints: one hit).
     #[serde(default)]
     pub hits: model::HitRule,
+    /// Views rendered by the teacher from new camera positions, added to the training images
+    /// for stages 2–4 ([`with_teacher_views`]); 0: the captured images only.
+    #[serde(default)]
+    pub teacher_views: u32,
     pub steps: u64,
     pub rays_per_batch: usize,
     pub rays_per_chunk: usize,
@@ -145,6 +150,7 @@ impl DistillConfig {
             specular_hash_grid: None,
             alpha_min: 0.02,
             hits: model::HitRule::default(),
+            teacher_views: 0,
             steps,
             rays_per_batch: 8192,
             rays_per_chunk: 128,
@@ -340,6 +346,67 @@ impl MoreHits {
     pub fn queries(&self, p_hit: Vec3) -> impl Iterator<Item = (Vec3, f32)> + '_ {
         std::iter::once(p_hit).chain(self.p.iter().copied()).zip(self.beta).take(self.count as usize)
     }
+}
+
+/// Most degrees a teacher view's camera is turned from the training camera it starts from.
+pub const TEACHER_VIEW_TURN_DEG: f64 = 20.0;
+
+/// The images plus `count` views rendered by the teacher (RGB and α, straight) from cameras
+/// the images do not have: each is a random training camera turned about the point the
+/// training cameras look at (their least-squares meeting point) by up to
+/// [`TEACHER_VIEW_TURN_DEG`] about a random axis, so it sees the object from between and
+/// around the captured views, with the same intrinsics and up vector as the camera it came
+/// from. The student then learns the teacher's appearance there too, instead of only at the
+/// captured pixels (at 400×400 on lego, a student fitted to 70 views alone overfits: finer
+/// diffuse cubes raise its training PSNR and lower its held-out PSNR).
+pub fn with_teacher_views(teacher: &Trainer, data: &Dataset, count: usize, seed: u64, progress: &(dyn Fn(usize) + Sync)) -> Dataset {
+    let mut out = data.clone();
+    if count == 0 || data.images.is_empty() {
+        return out;
+    }
+    // Where the training cameras look: the point nearest to all their optical axes.
+    let (mut a, mut b) = (glam::DMat3::ZERO, glam::DVec3::ZERO);
+    for im in &data.images {
+        let m = im.view.world_from_camera;
+        let (o, d) = (m.w_axis.truncate(), -m.z_axis.truncate().normalize());
+        let p = glam::DMat3::IDENTITY - glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += p;
+        b += p * o;
+    }
+    let centre = if a.determinant().abs() > 1e-9 { a.inverse() * b } else { glam::DVec3::ZERO };
+    let mut rng = SmallRng::seed_from_u64(seed ^ 0x0074_6561_6368_6572);
+    let views: Vec<(usize, glam::DMat4)> = (0..count)
+        .map(|_| {
+            let j = rng.random_range(0..data.images.len());
+            let axis = glam::DVec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)).normalize_or(glam::DVec3::Z);
+            let angle = rng.random_range(0.0..TEACHER_VIEW_TURN_DEG).to_radians();
+            let turn = glam::DMat4::from_translation(centre) * glam::DMat4::from_axis_angle(axis, angle) * glam::DMat4::from_translation(-centre);
+            (j, turn * data.images[j].view.world_from_camera)
+        })
+        .collect();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let rendered: Vec<DatasetImage> = views
+        .iter()
+        .enumerate()
+        .map(|(i, &(j, world_from_camera))| {
+            let like = &data.images[j];
+            let mut image = DatasetImage { view: View { world_from_camera, intrinsics: like.view.intrinsics }, width: like.width, height: like.height, rgba: Vec::new(), path: format!("teacher view {i} (from {})", like.path.display()).into() };
+            let rays: Vec<(Vec3, Vec3)> = image.rays().collect();
+            // Over black the colour is premultiplied by α.
+            image.rgba = teacher
+                .render(&rays, Vec3::ZERO)
+                .into_iter()
+                .flat_map(|(premultiplied, alpha)| {
+                    let rgb = if alpha > 1e-4 { (premultiplied / alpha).clamp(Vec3::ZERO, Vec3::ONE) } else { Vec3::ZERO };
+                    [rgb.x, rgb.y, rgb.z, alpha.clamp(0.0, 1.0)]
+                })
+                .collect();
+            progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
+            image
+        })
+        .collect();
+    out.images.extend(rendered);
+    out
 }
 
 /// Stage 2b output: hits grouped by error-map tile.

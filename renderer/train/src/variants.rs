@@ -9,7 +9,10 @@
 //! - hits from the baked density cubes, shaded by a student with diffuse from its net or
 //!   from baked diffuse cubes ([`render_cubes`]); the student's `E_s` may be a hash grid
 //!   (the ablation rows) or the PSH;
-//! - the i-NGP baseline itself is [`Trainer::render`]; the full asset is the CPU backend.
+//! - the i-NGP baseline itself is [`Trainer::render`]; the full asset is the CPU backend;
+//! - **oracles** ([`render_oracles`]): the teacher's own march collapsed by a student's rule
+//!   (one hit, or the multi-hit rule with each segment's colour at its peak or averaged), the
+//!   ceiling of each structure.
 //!
 //! Each returns interleaved RGB over a background and where the time went.
 
@@ -18,8 +21,8 @@ use std::time::Instant;
 use glam::Vec3;
 use nephele_renderer::{
     cubes::{Aabb, TextureCubes},
-    model::{self, MarchHit, RenderSettings, clip_ray},
-    ngp::FieldTape,
+    model::{self, HitRule, MarchHit, RenderSettings, Segments, Tracker, clip_ray},
+    ngp::{FieldTape, NgpRay},
 };
 use rayon::prelude::*;
 
@@ -174,6 +177,113 @@ pub fn render_ngp(teacher: &Trainer, rays: &[(Vec3, Vec3)], background: Vec3) ->
     let hits = out.iter().filter(|(_, a)| *a > 0.02).count();
     let rgb = out.into_iter().flat_map(|(c, _)| c.to_array()).collect();
     VariantFrame { rgb, march_ms: f64::NAN, total_ms: start.elapsed().as_secs_f64() * 1e3, hits }
+}
+
+/// A student's rule applied to the teacher's own march: an oracle, the ceiling of a structure
+/// (what a student of that structure would render if it matched the teacher perfectly).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum OracleRule {
+    /// The colour of the max-weight sample: the ideal one-hit student.
+    OneHit,
+    /// The multi-hit rule ([`model::Segments`]) on the teacher's samples: each queried
+    /// segment's colour at its peak sample, or (`averaged`) its samples' colours averaged by
+    /// weight (what a student trained on pixels can learn at a hit); blended by segment weight.
+    MultiHit { rule: HitRule, averaged: bool },
+}
+
+/// One oracle's render: RGB over the background, rays hit (α ≥ `alpha_min`), queries made.
+#[derive(Debug, Clone, Default)]
+pub struct OracleFrame {
+    pub rgb: Vec<f32>,
+    pub hits: usize,
+    pub queries: usize,
+}
+
+/// Renders `rays` with the teacher's weights, colours and α (`1 − T_end`) collapsed by each
+/// rule, in one march: segments are split `gap_t` (scene units) apart, as the student's rule
+/// does with its own step.
+pub fn render_oracles(teacher: &Trainer, rays: &[(Vec3, Vec3)], background: Vec3, gap_t: f32, alpha_min: f32, rules: &[OracleRule]) -> Vec<OracleFrame> {
+    let model = teacher.model();
+    let delta = model.step_size();
+    let per_chunk: Vec<Vec<OracleFrame>> = rays
+        .par_chunks(model.rays_per_chunk.max(1))
+        .map(|chunk| {
+            let ngp_rays: Vec<NgpRay> = chunk.iter().map(|&(origin, dir)| NgpRay { origin, dir, background, jitter: 0.5 }).collect();
+            let out = model.forward_chunk(&ngp_rays);
+            let mut frames = vec![OracleFrame::default(); rules.len()];
+            let mut k0 = 0;
+            for (ray, rows) in ngp_rays.iter().zip(&out.used) {
+                // Samples front to back: (t, weight, colour).
+                let mut transmittance = 1.0f32;
+                let samples: Vec<(f32, f32, Vec3)> = rows
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &row)| {
+                        let p = model.bounds.min + out.points01[row as usize] * model.bounds.size();
+                        let alpha = -(-out.tape.sigma[row as usize] * delta).exp_m1();
+                        let w = transmittance * alpha;
+                        transmittance *= 1.0 - alpha;
+                        (ray.dir.dot(p - ray.origin), w, Vec3::from_slice(&out.tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3]))
+                    })
+                    .collect();
+                k0 += rows.len();
+                let alpha_c = 1.0 - transmittance;
+                let hit = alpha_c >= alpha_min && !samples.is_empty();
+                for (rule, frame) in rules.iter().zip(&mut frames) {
+                    let (colour, queries) = if hit { oracle_colour(rule, &samples, alpha_c, gap_t) } else { (Vec3::ZERO, 0) };
+                    let pixel = alpha_c * colour + (1.0 - alpha_c) * background;
+                    frame.rgb.extend_from_slice(&pixel.to_array());
+                    frame.hits += hit as usize;
+                    frame.queries += queries;
+                }
+            }
+            frames
+        })
+        .collect();
+    let mut frames = vec![OracleFrame::default(); rules.len()];
+    for chunk in per_chunk {
+        for (all, part) in frames.iter_mut().zip(chunk) {
+            all.rgb.extend(part.rgb);
+            all.hits += part.hits;
+            all.queries += part.queries;
+        }
+    }
+    frames
+}
+
+/// The colour one rule gives a ray's samples `(t, weight, colour)`, and its queries.
+fn oracle_colour(rule: &OracleRule, samples: &[(f32, f32, Vec3)], alpha_c: f32, gap_t: f32) -> (Vec3, usize) {
+    let heaviest = samples.iter().fold((0.0f32, Vec3::ZERO), |best, &(_, w, c)| if w > best.0 { (w, c) } else { best });
+    match *rule {
+        OracleRule::OneHit => (heaviest.1, 1),
+        OracleRule::MultiHit { rule, averaged } => {
+            let mut segments = Segments::new(gap_t);
+            let mut w_max = 0.0f32;
+            for &(t, w, _) in samples {
+                let new_max = w > w_max;
+                w_max = w_max.max(w);
+                segments.sample(t, w, new_max);
+            }
+            let (chosen, n) = segments.select(alpha_c, &rule);
+            if n == 0 {
+                return (heaviest.1, 1);
+            }
+            let total: f32 = chosen[..n].iter().map(|s| s.weight).sum();
+            let colour = chosen[..n]
+                .iter()
+                .map(|seg| {
+                    let inside = samples.iter().filter(|s| s.0 >= seg.first_t && s.0 <= seg.last_t);
+                    let c = if averaged {
+                        inside.fold(Vec3::ZERO, |acc, &(_, w, c)| acc + w * c) / seg.weight.max(f32::MIN_POSITIVE)
+                    } else {
+                        samples.iter().find(|s| s.0 == seg.peak_t).map_or(heaviest.1, |s| s.2)
+                    };
+                    seg.weight / total * c
+                })
+                .sum();
+            (colour, n)
+        }
+    }
 }
 
 #[cfg(test)]

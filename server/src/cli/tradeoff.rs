@@ -28,6 +28,10 @@
 //! plots PSNR against frame time, one marker per row, its size growing with the model's MB
 //! (NEPHELE's Fig. 13).
 //!
+//! Oracle rows put the ceiling of each structure beside the students: the teacher's own
+//! march collapsed by a student's rule (one hit; multi-hit at each τ with each segment's
+//! colour at its peak, or averaged over it by weight), scored on the same views.
+//!
 //! The distance sweep renders an orbit view from far to filling the screen with i-NGP and
 //! the asset and plots ms/frame to a PNG.
 
@@ -54,7 +58,7 @@ use nephele_train::{
     dataset::{Dataset, LoadOptions, Split},
     distill::{self, DistillConfig, Distiller, Geometry, Student},
     trainer::eval::{psnr, ssim},
-    variants::{self, VariantFrame},
+    variants::{self, OracleRule, VariantFrame},
 };
 
 use super::plot::{Dot, DotSeries, Labels, Series, line_chart, scatter_chart};
@@ -325,6 +329,48 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         }
     };
 
+    // Oracles: the teacher's own march collapsed by each student rule (the ceiling of each
+    // structure), scored on the same views; no times (they cost a teacher march).
+    let mut oracle_rules = vec![(OracleRule::OneHit, "oracle: the teacher's colour at its max-weight sample (ideal one-hit student)".to_string())];
+    for &tau in opts.taus.iter().filter(|&&t| t < 1.0) {
+        let rule = HitRule { tau, max_hits: opts.max_hits, ..HitRule::default() };
+        oracle_rules.push((OracleRule::MultiHit { rule, averaged: false }, format!("oracle: multi-hit τ = {tau}, colour at each segment's peak")));
+        oracle_rules.push((OracleRule::MultiHit { rule, averaged: true }, format!("oracle: multi-hit τ = {tau}, each segment's colour averaged by weight")));
+    }
+    let rules: Vec<OracleRule> = oracle_rules.iter().map(|r| r.0).collect();
+    let gap_t = HitRule::default().gap_steps * step;
+    let b = bar("oracles", test.images.len() as u64);
+    let mut oracle_sums = vec![(0.0, 0.0, 0usize, 0usize); rules.len()];
+    for im in &test.images {
+        let truth = im.composite_over(Vec3::ONE);
+        for (sum, frame) in oracle_sums.iter_mut().zip(variants::render_oracles(&teacher, &im.rays().collect::<Vec<_>>(), Vec3::ONE, gap_t, alpha_min, &rules)) {
+            sum.0 += psnr(&truth, &frame.rgb);
+            sum.1 += ssim(&truth, &frame.rgb, im.width as usize, im.height as usize, 3);
+            sum.2 += frame.hits;
+            sum.3 += frame.queries;
+        }
+        b.inc(1);
+    }
+    b.finish_and_clear();
+    let oracle_rows: Vec<Row> = oracle_rules
+        .iter()
+        .zip(&oracle_sums)
+        .map(|((_, name), &(p, s, hits, queries))| {
+            let n = test.images.len() as f64;
+            Row {
+                variant: name.clone(),
+                psnr: p / n,
+                ssim: s / n,
+                model_bytes: ngp_model,
+                runtime_extra_bytes: ngp_extra,
+                march_ms: f64::NAN,
+                total_ms: f64::NAN,
+                fps: f64::NAN,
+                queries_per_hit: queries as f64 / hits.max(1) as f64,
+            }
+        })
+        .collect();
+
     // Quality on held-out views.
     let b = bar("eval", (variants.len() * test.images.len()) as u64);
     let mut scores = Vec::new();
@@ -402,6 +448,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         b.inc(1);
     }
     b.finish_and_clear();
+    rows.extend(oracle_rows);
     // Distance sweep: an orbit at the first held-out camera's direction, far → filling the screen.
     let centre = main.bounds.center().as_dvec3();
     let eye = first.view.world_from_camera.w_axis.truncate();
@@ -495,17 +542,15 @@ pub fn format_report(r: &Report) -> String {
     for x in &r.rows {
         let march = if x.march_ms.is_finite() { format!("{:.1}", x.march_ms) } else { "—".into() };
         let queries = if x.queries_per_hit.is_finite() { format!("{:.2}", x.queries_per_hit) } else { "—".into() };
+        let timed = if x.total_ms.is_finite() { format!("{:.1} | {:.2} | {:.1}×", x.total_ms, x.fps, base / x.total_ms) } else { "— | — | —".into() };
         let _ = writeln!(
             s,
-            "| {} | {:.2} | {:.4} | {:.2} | {:.2} | {queries} | {march} | {:.1} | {:.2} | {:.1}× |",
+            "| {} | {:.2} | {:.4} | {:.2} | {:.2} | {queries} | {march} | {timed} |",
             x.variant,
             x.psnr,
             x.ssim,
             x.model_bytes as f64 / 1048576.0,
             x.runtime_extra_bytes as f64 / 1048576.0,
-            x.total_ms,
-            x.fps,
-            base / x.total_ms
         );
     }
     if let Some(g) = &r.gpu {

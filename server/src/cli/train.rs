@@ -418,6 +418,18 @@ fn train_ngp(opts: &TrainOptions, config: TrainConfig, steps: u64, data: &Datase
 
 /// Stages 2–4: geometry, appearance nets (or their checkpoint when resuming), bake.
 fn train_nolf(opts: &TrainOptions, teacher: &Trainer, cfg: DistillConfig, data: &Dataset, work: &Path) -> Result<(Asset, NolfSummary)> {
+    let augmented;
+    let data = if cfg.teacher_views > 0 {
+        let t = Instant::now();
+        let bar = progress_bar("views", cfg.teacher_views as u64, 0);
+        bar.set_message("the teacher renders new views for the student");
+        augmented = nephele_train::distill::with_teacher_views(teacher, data, cfg.teacher_views as usize, cfg.seed, &|n| bar.set_position(n as u64));
+        bar.finish_and_clear();
+        eprintln!("stage nolf views: {} teacher views added to {} images in {:.1} s", cfg.teacher_views, data.images.len(), t.elapsed().as_secs_f64());
+        &augmented
+    } else {
+        data
+    };
     let t = Instant::now();
     let bar = spinner("nolf", "baking density cubes from the field and marching every training ray");
     let geometry = geometry(teacher, data, &cfg).map_err(anyhow::Error::msg)?;
