@@ -52,68 +52,65 @@ fn serve(addr: &str) -> Reap {
     Reap(child)
 }
 
+/// Runs `node tests/browser/<script> <url>`, waits for its `READY` line, calls `meanwhile`,
+/// and returns its exit status and last (JSON) line.
+fn node_around(script: &str, url: &str, meanwhile: impl FnOnce()) -> (bool, serde_json::Value) {
+    use std::io::{BufRead, BufReader};
+    let mut node = Command::new("node").arg(repo().join("tests/browser").join(script)).arg(url).stdout(std::process::Stdio::piped()).spawn().expect("running node");
+    let mut out = BufReader::new(node.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "READY", "{script}: the viewer did not stream first: {line}");
+    meanwhile();
+    let mut rest = String::new();
+    while out.read_line(&mut rest).unwrap() > 0 {}
+    let status = node.wait().unwrap();
+    let report = serde_json::from_str(rest.lines().last().unwrap_or_default()).unwrap_or_else(|_| panic!("{script}: no JSON report: {rest}"));
+    (status.success(), report)
+}
+
 #[test]
 fn the_viewer_reconnects_after_the_server_restarts() {
-    use std::io::{BufRead, BufReader};
     assert!(repo().join("tests/browser/node_modules/playwright-core").exists(), "run `npm ci --prefix tests/browser` (tests/run does)");
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
     let server = serve(&addr);
-    let mut node = Command::new("node")
-        .arg(repo().join("tests/browser/reconnect.mjs"))
-        .arg(format!("http://{addr}/"))
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .expect("running node");
-    let mut out = BufReader::new(node.stdout.take().unwrap());
-    let mut line = String::new();
-    out.read_line(&mut line).unwrap();
-    assert_eq!(line.trim(), "READY", "the viewer did not stream before the restart: {line}");
-    drop(server);
-    std::thread::sleep(std::time::Duration::from_secs(2));
-    let _server = serve(&addr);
-    let mut rest = String::new();
-    while out.read_line(&mut rest).unwrap() > 0 {}
-    let status = node.wait().unwrap();
-    let report: serde_json::Value = serde_json::from_str(rest.lines().last().unwrap_or_default()).unwrap_or_else(|_| panic!("no JSON report: {rest}"));
-    assert!(status.success() && report["ok"] == true, "reconnect check failed: {report}");
+    let mut restarted = None;
+    let (ok, report) = node_around("reconnect.mjs", &format!("http://{addr}/"), || {
+        drop(server);
+        std::thread::sleep(std::time::Duration::from_secs(2));
+        restarted = Some(serve(&addr));
+    });
+    drop(restarted);
+    assert!(ok && report["ok"] == true, "reconnect check failed: {report}");
     assert!(report["banner"].as_str().is_some_and(|b| !b.is_empty()), "the lost connection was not shown in words: {report}");
 }
 
 /// Failure of the middle, in the browser: signaling (`nephele signal`, which also serves the
 /// page) is killed while the viewer streams from a `nephele master`, and started again on
-/// the same address 1 s later. The page stays connected and frames keep coming: the media is
-/// peer to peer and the session belongs to the master (see `tests/browser/signal_restart.mjs`).
+/// the same address 1 s later. The page stays connected, frames keep coming (the media is
+/// peer to peer and the session belongs to the master), and it tells the user that
+/// signaling went away and the stream goes on (see `tests/browser/signal_restart.mjs`).
 #[test]
 fn the_viewer_keeps_streaming_through_a_signaling_restart() {
-    use std::io::{BufRead, BufReader};
     assert!(repo().join("tests/browser/node_modules/playwright-core").exists(), "run `npm ci --prefix tests/browser` (tests/run does)");
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
     let signal = nephele_e2e::spawn_signal_at(&addr);
     let _master = nephele_e2e::spawn_fixture_master(&addr);
-    let mut node = Command::new("node")
-        .arg(repo().join("tests/browser/signal_restart.mjs"))
-        .arg(format!("http://{addr}/"))
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .expect("running node");
-    let mut out = BufReader::new(node.stdout.take().unwrap());
-    let mut line = String::new();
-    out.read_line(&mut line).unwrap();
-    assert_eq!(line.trim(), "READY", "the viewer did not stream before the restart: {line}");
-    drop(signal);
-    std::thread::sleep(std::time::Duration::from_secs(1));
-    let _signal = nephele_e2e::spawn_signal_at(&addr);
-    let mut rest = String::new();
-    while out.read_line(&mut rest).unwrap() > 0 {}
-    let status = node.wait().unwrap();
-    let report: serde_json::Value = serde_json::from_str(rest.lines().last().unwrap_or_default()).unwrap_or_else(|_| panic!("no JSON report: {rest}"));
+    let mut restarted = None;
+    let (ok, report) = node_around("signal_restart.mjs", &format!("http://{addr}/"), || {
+        drop(signal);
+        std::thread::sleep(std::time::Duration::from_secs(1));
+        restarted = Some(nephele_e2e::spawn_signal_at(&addr));
+    });
+    drop(restarted);
     println!("{report}");
-    assert!(status.success() && report["ok"] == true, "signaling-restart check failed: {report}");
+    assert!(ok && report["ok"] == true, "signaling-restart check failed: {report}");
     let gap = report["maxGapMs"].as_f64().unwrap();
     assert!(gap < 1000.0, "the picture froze for {gap} ms while signaling restarted: {report}");
     assert!(report["framesDuring"].as_u64().unwrap() >= 20, "{report}");
+    assert!(report["told"].as_array().is_some_and(|t| !t.is_empty()), "the page did not say signaling went away: {report}");
 }
 
 /// The headset page in headless Chromium with `iwer` as the WebXR runtime (a Meta Quest 3,

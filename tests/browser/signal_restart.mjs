@@ -7,43 +7,23 @@
 //    decoded-frame count must keep rising; the longest time without a new frame is reported.
 // Prints one JSON line ({"ok":true,...} or {"ok":false,"error":...}); exit 0 or 1.
 
-import fs from 'node:fs';
-import os from 'node:os';
-import path from 'node:path';
-import { chromium } from 'playwright-core';
+import { noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
 
 const SAMPLE_MS = 6000;
 const base = process.argv[2];
-const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 const state = (page) => page.evaluate(async () => {
   const n = window.nephele;
   if (!n) return { state: 'loading' };
   const s = await n.stats();
-  return { state: n.state, banner: n.banner, framesDecoded: s.framesDecoded };
+  return { state: n.state, banner: n.banner, errors: n.errors, framesDecoded: s.framesDecoded };
 });
 
-const dir = fs.mkdtempSync(path.join(os.tmpdir(), 'nephele-chromium-'));
-let ctx;
-try {
-  ctx = await chromium.launchPersistentContext(dir, {
-    executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-    headless: true,
-    args: ['--no-sandbox', '--use-fake-ui-for-media-stream', '--use-fake-device-for-media-stream',
-      '--allow-loopback-in-peer-connection', '--disable-features=WebRtcHideLocalIpsWithMdns',
-      '--disable-background-networking', '--disable-component-update', '--disable-sync', '--no-first-run'],
-  });
-  const page = await ctx.newPage();
-  await page.goto(new URL('/?size=160x120', base).href);
-  const end = Date.now() + 60_000;
-  let s = await state(page);
-  while (!(s.state === 'connected' && s.framesDecoded >= 5)) {
-    if (Date.now() > end) throw new Error(`no frames before the restart: ${JSON.stringify(s)}`);
-    await sleep(200);
-    s = await state(page);
-  }
+await runInChromium(async (context) => {
+  const { page, pageErrors } = await openPage(context, new URL('/?size=160x120', base).href);
+  const before = await waitFor('frames before the restart', () => state(page), (s) => s.state === 'connected' && s.framesDecoded >= 5, 60_000);
   console.log('READY');
   const start = Date.now();
-  let last = { at: start, frames: s.framesDecoded };
+  let last = { at: start, frames: before.framesDecoded };
   let maxGapMs = 0;
   const states = new Set();
   while (Date.now() - start < SAMPLE_MS) {
@@ -57,15 +37,10 @@ try {
   }
   maxGapMs = Math.max(maxGapMs, Date.now() - last.at);
   const after = await state(page);
-  const report = { ok: true, maxGapMs, states: [...states], framesDuring: after.framesDecoded - s.framesDecoded, banner: after.banner || '' };
-  if (states.size !== 1 || !states.has('connected')) {
-    Object.assign(report, { ok: false, error: `the page left the connected state: ${[...states]}` });
-  }
-  console.log(JSON.stringify(report));
-  await ctx.close();
-  process.exit(report.ok ? 0 : 1);
-} catch (e) {
-  console.log(JSON.stringify({ ok: false, error: String(e && e.message || e) }));
-  if (ctx) await ctx.close().catch(() => {});
-  process.exit(1);
-}
+  // The page tells the user signaling went away and the stream goes on (code
+  // `connection_lost`); any other reported error, or an uncaught one, fails the check.
+  const told = (after.errors || []).filter((e) => e.code === 'connection_lost');
+  noErrors('viewer', { errors: (after.errors || []).filter((e) => e.code !== 'connection_lost') }, pageErrors);
+  if (states.size !== 1 || !states.has('connected')) throw new Error(`the page left the connected state: ${[...states]}`);
+  return { ok: true, maxGapMs, states: [...states], framesDuring: after.framesDecoded - before.framesDecoded, told: told.map((e) => e.message) };
+}, { timeoutMs: 120_000 });
