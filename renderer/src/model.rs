@@ -226,13 +226,18 @@ impl Segments {
         let Some(p) = self.primary else { return ([Segment::default(); MAX_HITS], 0) };
         let mut chosen = [self.closed[p]; MAX_HITS];
         let mut n = 1;
-        let mut rest: Vec<Segment> = (0..self.n_closed).filter(|&i| i != p).map(|i| self.closed[i]).collect();
-        rest.sort_by(|a, b| b.weight.total_cmp(&a.weight));
-        for seg in rest {
-            if n >= rule.max_hits as usize || seg.weight < rule.tau * alpha_c {
-                break;
-            }
-            chosen[n] = seg;
+        // The heaviest segment not taken yet, again and again (the first of equals), as
+        // `march.wgsl` does: no allocation per ray.
+        let mut taken = [false; MAX_SEGMENTS];
+        taken[p] = true;
+        while n < (rule.max_hits as usize).min(MAX_HITS) {
+            let best = (0..self.n_closed).filter(|&i| !taken[i]).fold(None, |best: Option<usize>, i| match best {
+                Some(b) if self.closed[b].weight >= self.closed[i].weight => Some(b),
+                _ => Some(i),
+            });
+            let Some(best) = best.filter(|&b| self.closed[b].weight >= rule.tau * alpha_c) else { break };
+            taken[best] = true;
+            chosen[n] = self.closed[best];
             n += 1;
         }
         (chosen, n)

@@ -73,6 +73,9 @@ fn bad_input_is_a_clear_error() {
         (vec!["synth", "--scene", "teapot", "--out", "/tmp/never"], "unknown synthetic scene"),
         (vec!["dataset-info", "/nonexistent/lego"], "does not exist"),
         (vec!["serve", "--render-scale", "2"], "render scale"),
+        (vec!["render", "builtin:trio-small", "--hit-tau", "2"], "--hit-tau in [0, 1]"),
+        (vec!["render", "builtin:trio-small", "--max-hits", "0"], "--max-hits in 1..=3"),
+        (vec!["serve", "--hit-tau", "NaN"], "--hit-tau in [0, 1]"),
         (vec!["replay", "--trace", "/nonexistent.json"], "nonexistent.json"),
     ] {
         let o = nephele(&args);

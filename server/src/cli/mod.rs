@@ -102,7 +102,15 @@ pub struct RenderKnobs {
 impl RenderKnobs {
     pub fn settings(&self) -> Result<nephele_renderer::RenderSettings> {
         let s = nephele_renderer::RenderSettings { step_scale: self.step_scale, hit_tau: self.hit_tau, max_hits: self.max_hits, ..Default::default() };
-        s.validate().map_err(anyhow::Error::msg)?;
+        if s.validate().is_err() {
+            anyhow::bail!(
+                "--step-scale must be in [0.05, 20], --hit-tau in [0, 1] and --max-hits in 1..={} (got {}, {:?}, {:?})",
+                nephele_renderer::model::MAX_HITS,
+                self.step_scale,
+                self.hit_tau,
+                self.max_hits
+            );
+        }
         Ok(s)
     }
 }

@@ -269,13 +269,22 @@ pub fn scatter_chart(path: &Path, labels: &Labels<'_>, series: &[DotSeries], log
     let mut c = Canvas(vec![255; W * H * 3]);
     let axes = Axes::fit(series.iter().flat_map(|s| s.dots.iter().map(|d| (d.x, d.y))), log_x, false, false);
     axes.draw(&mut c);
+    // Markers first; then each label right of its marker, moved up or down a line at a time
+    // until it clears the labels already placed (clustered points stay readable).
+    let mut placed: Vec<(i64, i64, &str)> = Vec::new();
     for s in series {
         for d in s.dots.iter().filter(|d| axes.keeps((d.x, d.y))) {
             let (px, py) = axes.to_px(d.x, d.y);
             let r = d.radius_px.clamp(2, 24);
             c.rect(px as i64 - r, py as i64 - r, 2 * r + 1, 2 * r + 1, s.rgb);
-            c.text(px as i64 + r + 4, py as i64 - 5, &d.label, 2, [40, 40, 40]);
+            let (x, w) = (px as i64 + r + 4, text_width(&d.label, 2));
+            let clear = |y: i64| placed.iter().all(|&(lx, ly, l)| x + w < lx || lx + text_width(l, 2) < x || y + 10 < ly || ly + 10 < y);
+            let y = [0, 12, -12, 24, -24, 36, -36].iter().map(|dy| py as i64 - 5 + dy).find(|&y| clear(y)).unwrap_or(py as i64 - 5);
+            placed.push((x, y, &d.label));
         }
+    }
+    for &(x, y, text) in &placed {
+        c.text(x, y, text, 2, [40, 40, 40]);
     }
     let legend: Vec<(&str, [u8; 3])> = series.iter().map(|s| (s.name.as_str(), s.rgb)).collect();
     finish(c, path, labels, &legend)

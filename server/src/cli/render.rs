@@ -94,6 +94,7 @@ struct PoseFile {
 }
 
 pub fn render(args: RenderArgs) -> Result<()> {
+    let settings = args.knobs.settings()?;
     let (w, h) = parse_size(&args.size)?;
     let background = parse_color(&args.background)?;
     let backend = make_backend(args.backend)?;
@@ -118,7 +119,6 @@ pub fn render(args: RenderArgs) -> Result<()> {
         Some(q) => q.cameras(&view, focal_distance(&view, DVec3::ZERO, 1e-3)),
         None => vec![view],
     };
-    let settings = args.knobs.settings()?;
     let is_scene = args.asset.ends_with(".json") || crate::assets::BUILTIN_SCENE_FILES.iter().any(|(n, _)| args.asset == format!("builtin:{n}"));
     let (frames, s) = if is_scene {
         // A scene: every object rendered and composed by depth (timings summed).
