@@ -115,6 +115,7 @@ impl TextureCubes {
 
     /// Trilinear lookup at an object-space point; zero in empty cells and outside the box
     /// (clamped to the border cell, as the GPU kernel does).
+    #[inline(always)]
     pub fn sample<const C: usize>(&self, p: Vec3) -> [f32; C] {
         let g = self.to_fine(p);
         // Truncate-then-clamp equals floor-then-clamp for every input (negatives clamp to 0).
@@ -128,6 +129,7 @@ impl TextureCubes {
 
     /// Trilinear lookup of fine-grid point `g` in the brick of index cell `cell` (the march
     /// already knows both); `g` is clamped into the brick.
+    #[inline(always)]
     pub fn sample_in_brick<const C: usize>(&self, brick: usize, cell: Vec3, g: Vec3) -> [f32; C] {
         debug_assert_eq!(C, self.channels as usize);
         let r = self.brick as f32;

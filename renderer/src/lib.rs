@@ -8,6 +8,7 @@ pub mod camera;
 pub mod compose;
 pub mod container;
 pub mod cubes;
+pub mod fast;
 pub mod gpu;
 pub mod mlp;
 pub mod model;
@@ -20,6 +21,7 @@ pub mod sh;
 pub mod views;
 
 pub use asset::{Asset, AssetError};
+pub use fast::FastCpuBackend;
 pub use camera::{Instance, Intrinsics, PoseError, View};
 pub use model::RenderSettings;
 pub use render::{Backend, CancelFlag, CpuBackend, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest};

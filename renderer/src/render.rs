@@ -91,7 +91,8 @@ pub struct RenderStats {
     pub total_ms: f64,
     pub rays: u64,
     pub hits: u64,
-    /// Density samples taken (CPU backend only; 0 where not counted).
+    /// Density samples taken (CPU backends only; 0 where not counted): every sample in an
+    /// occupied cell for the reference, those with σ > 0 for the fast renderer.
     pub samples: u64,
     /// Network queries (≥ `hits`; more with multi-hit; 0 where not counted).
     pub queries: u64,
@@ -194,7 +195,7 @@ struct CpuPrepared(Arc<Asset>, crate::mlp::MlpKernel);
 
 impl Backend for CpuBackend {
     fn name(&self) -> String {
-        "cpu".into()
+        "cpu-ref".into()
     }
     fn prepare(&self, asset: Arc<Asset>) -> Result<Box<dyn PreparedAsset>, RenderError> {
         let net = asset.mlp.kernel();

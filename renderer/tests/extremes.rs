@@ -1,4 +1,5 @@
-//! Numerical stability at the extremes of DESIGN §7, on both backends: cameras inside the box,
+//! Numerical stability at the extremes of DESIGN §7, on every backend (the CPU reference, the
+//! fast CPU renderer, wgpu): cameras inside the box,
 //! on its face and 10⁶ units away; axis-parallel rays with exactly zero components; σ = 0 and
 //! σ saturating f16; 1×1 and 8K viewports; NaN/Inf/non-rigid poses and absurd sizes → errors;
 //! a cancelled render stops with `Cancelled` on both backends.
@@ -9,16 +10,22 @@ use std::sync::Arc;
 
 use glam::{DMat4, DVec3, DVec4};
 use nephele_renderer::{
-    Asset, Backend, CancelFlag, CpuBackend, Intrinsics, PoseError, RenderError, RenderOutput, RenderSettings, View, ViewRequest,
+    Asset, Backend, CancelFlag, CpuBackend, FastCpuBackend, Intrinsics, PoseError, RenderError, RenderOutput, RenderSettings, View, ViewRequest,
     procedural::{self, ProceduralConfig, Scene},
 };
 
-/// Renders on both backends, checks they agree and that nothing is NaN.
+/// Renders on every backend, checks they agree and that nothing is NaN. The fast CPU
+/// renderer follows the reference to within a level (tests/fast_cpu.rs); wgpu within 4.
 fn both(asset: &Arc<Asset>, views: &[ViewRequest]) -> Option<RenderOutput> {
     let settings = RenderSettings::default();
     let cpu = CpuBackend.prepare(asset.clone()).unwrap().render(views, &settings).unwrap();
     for f in &cpu.frames {
         assert!(f.depth.iter().all(|d| !d.is_nan() && *d > 0.0), "depth must be positive or +inf");
+    }
+    let fast = FastCpuBackend.prepare(asset.clone()).unwrap().render(views, &settings).unwrap();
+    for (c, f) in cpu.frames.iter().zip(&fast.frames) {
+        let d = common::diff(c, f, 2, 1e-3 * asset.march.step);
+        assert!(d.frac_over <= 0.001 && d.hit_mismatch <= 0.001 && d.depth_off <= 0.001, "fast CPU vs reference: {d:?}");
     }
     let gpu = common::gpu()?;
     let out = gpu.prepare(asset.clone()).unwrap().render(views, &settings).unwrap();
@@ -139,7 +146,7 @@ fn bad_poses_and_sizes_are_clear_errors() {
     let mut v = good;
     v.intrinsics.fy = 0.0;
     cases.push((v, "intrinsics"));
-    let mut backends: Vec<&dyn Backend> = vec![&CpuBackend];
+    let mut backends: Vec<&dyn Backend> = vec![&CpuBackend, &FastCpuBackend];
     if let Some(g) = common::gpu() {
         backends.push(g);
     }
@@ -165,7 +172,7 @@ fn a_cancelled_render_stops_with_cancelled() {
     // 8K UHD from close by: seconds of work on the CPU, several chunks on the GPU.
     let big = [ViewRequest::new(View::orbit(DVec3::ZERO, 4.0, 35.0, 25.0, Intrinsics::from_fov_x(7680, 4320, 1.2)))];
     let settings = RenderSettings::default();
-    let mut backends: Vec<&dyn Backend> = vec![&CpuBackend];
+    let mut backends: Vec<&dyn Backend> = vec![&CpuBackend, &FastCpuBackend];
     if let Some(g) = common::gpu() {
         backends.push(g);
     }

@@ -7,7 +7,7 @@ use std::{path::Path, sync::Arc};
 
 use anyhow::{Context, Result, bail};
 use nephele_renderer::{
-    Asset, Backend, CpuBackend,
+    Asset, Backend, CpuBackend, FastCpuBackend,
     gpu::GpuBackend,
     procedural::{self, ProceduralConfig, Scene},
 };
@@ -47,26 +47,30 @@ pub fn load_asset(spec: &str) -> Result<Arc<Asset>> {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum BackendChoice {
-    /// A hardware GPU if there is one; else the CPU reference, which outruns software Vulkan
-    /// (lavapipe) on the same cores — see `nephele bench render`.
+    /// A hardware GPU if there is one; else the fast CPU renderer, which outruns software
+    /// Vulkan (lavapipe) on the same cores — see `nephele bench render`.
     Auto,
     Gpu,
+    /// The fast CPU renderer (empty-space skipping, batched SIMD network).
     Cpu,
+    /// The plain CPU reference renderer that the others are tested against.
+    CpuRef,
 }
 
 pub fn make_backend(choice: BackendChoice) -> Result<Box<dyn Backend>> {
     match choice {
-        BackendChoice::Cpu => Ok(Box::new(CpuBackend)),
+        BackendChoice::Cpu => Ok(Box::new(FastCpuBackend)),
+        BackendChoice::CpuRef => Ok(Box::new(CpuBackend)),
         BackendChoice::Gpu => Ok(Box::new(GpuBackend::new()?)),
         BackendChoice::Auto => match GpuBackend::new() {
             Ok(gpu) if gpu.ctx.info.device_type != nephele_renderer::gpu::DeviceType::Cpu => Ok(Box::new(gpu)),
             Ok(gpu) => {
                 eprintln!("note: the only GPU adapter is software ({}); rendering on the CPU, which is faster here (force with --backend gpu)", gpu.ctx.describe());
-                Ok(Box::new(CpuBackend))
+                Ok(Box::new(FastCpuBackend))
             }
             Err(e) => {
-                eprintln!("warning: {e}; using the CPU reference renderer (slow)");
-                Ok(Box::new(CpuBackend))
+                eprintln!("warning: {e}; rendering on the CPU");
+                Ok(Box::new(FastCpuBackend))
             }
         },
     }

@@ -169,7 +169,11 @@ pub fn run(what: BenchCommand) -> Result<()> {
                     batches.extend(bench_batch(backend.as_ref(), a.clone(), &sizes, runs, distance, batch)?);
                 }
             }
-            println!("asset: {asset}\n\n{}", format_table(&rows));
+            let peak = nephele_renderer::mlp::peak_fma_gflops();
+            match peak {
+                Some((p, threads, level)) => println!("asset: {asset}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}", format_table_with_peak(&rows, Some(p))),
+                None => println!("asset: {asset}\n\n{}", format_table(&rows)),
+            }
             if !batches.is_empty() {
                 println!("\n{batch} views around the orbit, median of {runs} runs:\n");
                 println!("| backend | size | one call ms per view | one view per call ms per view | batching speed-up |");
@@ -252,6 +256,11 @@ pub struct RenderBenchRow {
     pub total_ms: f64,
     pub rays_per_s: f64,
     pub hit_fraction: f64,
+    /// Network queries of the frame and multiply-adds per query.
+    pub queries: u64,
+    pub macs_per_query: u64,
+    /// Density samples per ray (CPU backends; 0 where not counted).
+    pub samples_per_ray: f64,
 }
 
 /// Median of `runs` renders of an orbit view at each size (after one warm-up).
@@ -284,6 +293,9 @@ pub fn bench_render(
             total_ms: s.total_ms,
             rays_per_s: s.rays as f64 / (s.total_ms / 1e3),
             hit_fraction: s.hits as f64 / s.rays.max(1) as f64,
+            queries: s.queries,
+            macs_per_query: prepared.asset().mlp.macs(),
+            samples_per_ray: s.samples as f64 / s.rays.max(1) as f64,
         });
     }
     Ok(rows)
@@ -335,13 +347,22 @@ pub fn bench_batch(
 }
 
 pub fn format_table(rows: &[RenderBenchRow]) -> String {
+    format_table_with_peak(rows, None)
+}
+
+/// The render table; with the machine's peak FMA rate (GFLOP/s, all threads) also the
+/// network's rate over its stage, the FMA floor of the frame (its network FLOPs at peak) and
+/// how far the frame is above that floor.
+pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>) -> String {
     let mut out = String::new();
-    let _ = writeln!(out, "| backend | size | ray-march ms | network ms | total ms | Mrays/s | hit fraction |");
-    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|");
+    let _ = write!(out, "| backend | size | ray-march ms | network ms | total ms | Mrays/s | hit fraction | samples/ray | queries/hit |");
+    let _ = writeln!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor |" } else { "" });
+    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|{}", if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" });
     for r in rows {
-        let _ = writeln!(
+        let hits = (r.hit_fraction * (r.width as f64 * r.height as f64)).max(1.0);
+        let _ = write!(
             out,
-            "| {} | {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} |",
+            "| {} | {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} | {:.1} | {:.2} |",
             r.backend,
             r.width,
             r.height,
@@ -349,8 +370,17 @@ pub fn format_table(rows: &[RenderBenchRow]) -> String {
             r.shade_ms,
             r.total_ms,
             r.rays_per_s / 1e6,
-            r.hit_fraction
+            r.hit_fraction,
+            r.samples_per_ray,
+            r.queries as f64 / hits
         );
+        if let Some(peak) = peak_gflops {
+            let gflop = 2.0 * (r.queries * r.macs_per_query) as f64 / 1e9;
+            let rate = gflop / (r.shade_ms / 1e3).max(1e-9);
+            let floor_ms = gflop / peak * 1e3;
+            let _ = write!(out, " {rate:.1} | {:.1}% | {floor_ms:.2} | {:.1}× |", 100.0 * rate / peak, r.total_ms / floor_ms.max(1e-9));
+        }
+        let _ = writeln!(out);
     }
     out
 }

@@ -17,7 +17,7 @@ use std::{
 };
 
 use anyhow::{Context, Result, bail};
-use nephele_renderer::{CpuBackend, RenderSettings};
+use nephele_renderer::{FastCpuBackend, RenderSettings};
 use nephele_signaling::Mode;
 use serde::Serialize;
 
@@ -161,7 +161,7 @@ fn spawn_worker(nats: &Nats, id: &str, scenes: &[String]) -> Result<Proc> {
 }
 
 async fn stream(scenes: &[String], scene: &str, nats: Option<NatsSettings>, trace: &Trace, size: (u32, u32)) -> Result<ReplayReport> {
-    let catalog = Arc::new(Catalog::load(scenes, &CpuBackend, RenderSettings::default())?);
+    let catalog = Arc::new(Catalog::load(scenes, &FastCpuBackend, RenderSettings::default())?);
     let cfg = MasterConfig {
         name: "bench".into(),
         token: None,

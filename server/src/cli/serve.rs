@@ -124,7 +124,7 @@ impl MasterOptions {
         }
         let nats = self.nats.settings()?;
         // With a NATS farm the workers render; the master only needs the scenes' shapes.
-        let backend = if nats.is_some() { Box::new(nephele_renderer::CpuBackend) } else { make_backend(self.backend)? };
+        let backend = if nats.is_some() { Box::new(nephele_renderer::FastCpuBackend) } else { make_backend(self.backend)? };
         let settings = self.knobs.settings()?;
         settings.validate().map_err(anyhow::Error::msg)?;
         eprintln!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name());

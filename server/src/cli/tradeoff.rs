@@ -48,7 +48,7 @@ use indicatif::ProgressBar;
 use serde::Serialize;
 
 use nephele_renderer::{
-    Asset, Backend, CpuBackend, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
+    Asset, Backend, FastCpuBackend, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
     gpu::{GpuBackend, ngp::GpuNgp},
     cubes::TextureCubes,
     model::HitRule,
@@ -410,7 +410,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         runs.sort_by(|a, b| a.stats.total_ms.total_cmp(&b.stats.total_ms));
         Ok(runs[1].stats)
     };
-    let backend = CpuBackend;
+    let backend = FastCpuBackend;
     let time_asset = |asset: &Arc<Asset>, view: &View| time_on(&backend, asset, view);
     let b = bar("time", variants.len() as u64);
     let mut rows = Vec::new();
