@@ -1,6 +1,6 @@
 //! Encoder stage: RGBA → I420 → OpenH264, decoded back with OpenH264's decoder.
 
-use nephele::master::encoder::{EncodeError, EncodedFrame, EncoderConfig, FrameEncoder, bench_encode, test_pattern};
+use nephele::master::encoder::{EncodeError, EncodedFrame, EncoderConfig, FrameEncoder, bench_encode, pattern_frames, test_pattern};
 use nephele::wire::sei::{parse_pose_seq, split_nals};
 use openh264::decoder::Decoder;
 use openh264::formats::YUVSource;
@@ -236,7 +236,7 @@ fn config_bitrate_scales_and_clamps() {
 #[test]
 fn bench_encode_reports_numbers() {
     for (w, h) in [(640, 480), (1280, 720)] {
-        let r = bench_encode(w, h, 100).unwrap();
+        let r = bench_encode(w, h, &pattern_frames(w, h, 100)).unwrap();
         println!(
             "{w}x{h}@{}fps {} kbps: convert p50 {:.2} ms p99 {:.2} ms | encode p50 {:.2} ms p99 {:.2} ms | {:.0} B/frame, IDR {} B",
             r.fps,

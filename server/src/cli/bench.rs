@@ -65,12 +65,16 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 3)]
         max_hits: u32,
     },
-    /// RGB→I420 and H.264 encode times on a moving test pattern.
+    /// RGB→I420 and H.264 encode times on a moving test pattern and on real content (an asset
+    /// orbiting, rendered on the CPU before the timing starts).
     Encode {
         #[arg(long, default_value = "640x480,1280x720")]
         sizes: String,
         #[arg(long, default_value_t = 200)]
         frames: u32,
+        /// The real content; `none` for the pattern only.
+        #[arg(long, default_value = DEFAULT_ASSET)]
+        asset: String,
     },
     /// Per-stage and end-to-end streaming latency through an in-process server and the
     /// replay client, per frame size.
@@ -143,16 +147,31 @@ pub fn run(what: BenchCommand) -> Result<()> {
             print!("{}", format_report(&report));
             Ok(())
         }
-        BenchCommand::Encode { sizes, frames } => {
-            println!("| size | frames | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes |");
-            println!("|---|---:|---:|---:|---:|---:|---:|");
+        BenchCommand::Encode { sizes, frames, asset } => {
+            let prepared = if asset == "none" { None } else { Some(nephele_renderer::FastCpuBackend.prepare(load_asset(&asset)?)?) };
+            println!("| content | size | frames | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes |");
+            println!("|---|---|---:|---:|---:|---:|---:|---:|");
             for size in sizes.split(',') {
                 let (w, h) = parse_size(size)?;
-                let r = crate::master::encoder::bench_encode(w, h, frames)?;
-                println!(
-                    "| {w}x{h} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} |",
-                    r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes
-                );
+                let mut contents = vec![("test pattern".to_string(), crate::master::encoder::pattern_frames(w, h, frames))];
+                if let Some(p) = &prepared {
+                    eprintln!("rendering {frames} frames of {asset} at {w}x{h} ...");
+                    // An orbit at 40°/s seen at 50 fps, as a user turning the object.
+                    let rendered = (0..frames.max(1))
+                        .map(|i| {
+                            let view = View::orbit(DVec3::ZERO, 4.0, 35.0 + 0.8 * i as f64, 25.0, Intrinsics::from_fov_x(w, h, 0.69));
+                            p.render(&[ViewRequest::new(view)], &RenderSettings::default()).map(|o| o.frames.into_iter().next().expect("one view").rgba)
+                        })
+                        .collect::<Result<Vec<_>, _>>()?;
+                    contents.push((asset.clone(), rendered));
+                }
+                for (name, content) in contents {
+                    let r = crate::master::encoder::bench_encode(w, h, &content)?;
+                    println!(
+                        "| {name} | {w}x{h} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} |",
+                        r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes
+                    );
+                }
             }
             Ok(())
         }

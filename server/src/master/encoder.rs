@@ -376,15 +376,14 @@ pub struct BenchResult {
     pub idr_bytes: usize,
 }
 
-/// Encode `frames` frames of [`test_pattern`] at 50 fps settings and report timings and sizes.
-pub fn bench_encode(width: u32, height: u32, frames: u32) -> Result<BenchResult, EncodeError> {
+/// Encode `frames` at 50 fps settings (each `width × height` RGBA; the first is an IDR) and
+/// report timings and sizes.
+pub fn bench_encode(width: u32, height: u32, frames: &[Vec<u8>]) -> Result<BenchResult, EncodeError> {
     let cfg = EncoderConfig::new(width, height, 50);
     let mut encoder = FrameEncoder::new(cfg)?;
     let (mut convert, mut encode, mut bytes, mut idr_bytes) = (vec![], vec![], 0usize, 0);
-    let mut rgba = Vec::new();
-    for i in 0..frames.max(1) {
-        test_pattern(width, height, i, &mut rgba);
-        let frame = encoder.encode(&rgba, width, height, u64::from(i))?;
+    for (i, rgba) in frames.iter().enumerate() {
+        let frame = encoder.encode(rgba, width, height, i as u64)?;
         convert.push(frame.convert_ms);
         encode.push(frame.encode_ms);
         bytes += frame.annex_b.len();
@@ -394,21 +393,32 @@ pub fn bench_encode(width: u32, height: u32, frames: u32) -> Result<BenchResult,
     }
     let pct = |v: &mut Vec<f64>, q: f64| {
         v.sort_by(f64::total_cmp);
-        v[((v.len() - 1) as f64 * q).round() as usize]
+        v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(0.0)
     };
     Ok(BenchResult {
         width,
         height,
-        frames: frames.max(1),
+        frames: frames.len() as u32,
         fps: cfg.fps,
         bitrate_bps: cfg.bitrate_bps,
         convert_ms_p50: pct(&mut convert, 0.5),
         convert_ms_p99: pct(&mut convert, 0.99),
         encode_ms_p50: pct(&mut encode, 0.5),
         encode_ms_p99: pct(&mut encode, 0.99),
-        bytes_per_frame: bytes as f64 / f64::from(frames.max(1)),
+        bytes_per_frame: bytes as f64 / frames.len().max(1) as f64,
         idr_bytes,
     })
+}
+
+/// `frames` frames of the moving [`test_pattern`].
+pub fn pattern_frames(width: u32, height: u32, frames: u32) -> Vec<Vec<u8>> {
+    (0..frames.max(1))
+        .map(|i| {
+            let mut rgba = Vec::new();
+            test_pattern(width, height, i, &mut rgba);
+            rgba
+        })
+        .collect()
 }
 
 #[cfg(test)]
