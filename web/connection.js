@@ -11,6 +11,7 @@
 
 import { clamp } from './camera.js';
 import { poseViewCount } from './pose.js';
+import { PresentedLatency } from './presented.js';
 
 // ─────────────────────────────────── helpers ────────────────────────────────────
 
@@ -142,7 +143,11 @@ export class Connection {
     this.lastPoseBytes = null;
     this.viewsPerPose = [];
     this.session = null;
-    this.hud = { fps: 0, latencyMs: null, kbps: 0, width: 0, height: 0, framesDecoded: 0, bytesReceived: 0 };
+    // latencyMs: pose sent → its frame presented (presented.js); infoLatencyMs: pose sent →
+    // its frame-info message (earlier: the frame is not decoded yet).
+    this.hud = { fps: 0, latencyMs: null, infoLatencyMs: null, kbps: 0, width: 0, height: 0, framesDecoded: 0, bytesReceived: 0 };
+    this.presented = new PresentedLatency();
+    this.presented.watch(video);
     this.gen = 0;          // bumps on every (re)connect; stale callbacks compare and bail out
     this.backoffS = 1;
     this.retryTimer = null;
@@ -186,6 +191,7 @@ export class Connection {
   // Close everything of the current attempt (telling signaling we leave, if we joined).
   teardown() {
     this.gen++;
+    this.presented.reset();
     clearTimeout(this.retryTimer);
     clearTimeout(this.disconnectTimer);
     clearTimeout(this.connectTimer);
@@ -324,6 +330,10 @@ export class Connection {
 
     pc.ontrack = (e) => {
       if (stale()) return;
+      // Interactive video: ask the receiver to play frames as soon as they are decoded
+      // rather than to buffer for smoothness (measured by `presented`).
+      if ('jitterBufferTarget' in e.receiver) e.receiver.jitterBufferTarget = 0;
+      else if ('playoutDelayHint' in e.receiver) e.receiver.playoutDelayHint = 0;
       const stream = e.streams[0] || new MediaStream([e.track]);
       this.video.srcObject = stream;
       this.video.play().catch(() => { /* muted autoplay is allowed; retried on the next track */ });
@@ -402,6 +412,7 @@ export class Connection {
       this.lastFrame = msg;
       this.frameInfos += 1;
       if (Number.isFinite(msg.t_client_ms)) this.latencies.push([now, now - msg.t_client_ms]);
+      this.presented.addInfo(msg);
     } else if (msg.type === 'session') {
       this.session = msg;
       this.onSession?.(msg);
@@ -467,7 +478,8 @@ export class Connection {
     this.prevStats = { t: now, framesDecoded: s.framesDecoded, bytesReceived: s.bytesReceived };
     hud.framesDecoded = s.framesDecoded;
     hud.bytesReceived = s.bytesReceived;
-    hud.latencyMs = this.latencyP50();
+    hud.latencyMs = this.presented.p50();
+    hud.infoLatencyMs = this.latencyP50();
     hud.width = this.video.videoWidth;
     hud.height = this.video.videoHeight;
     this.onChange?.();
@@ -485,6 +497,8 @@ export class Connection {
       get session() { return conn.session; },
       get banner() { return conn.banner ? conn.banner.text : null; },
       get hud() { return { ...conn.hud }; },
+      /** Pose → presented frame: frames matched so far and the median of the last second. */
+      get presented() { return { matched: conn.presented.matched, p50: conn.presented.p50(), info_p50: conn.latencyP50() }; },
       errors: conn.errors,
       framesDecoded: () => conn.hud.framesDecoded,
       stats: () => conn.stats(),

@@ -101,6 +101,7 @@ const PAGES: &[(&str, &str, &str)] = &[
     ("/pose.js", "text/javascript; charset=utf-8", include_str!("../../web/pose.js")),
     ("/connection.js", "text/javascript; charset=utf-8", include_str!("../../web/connection.js")),
     ("/hud.js", "text/javascript; charset=utf-8", include_str!("../../web/hud.js")),
+    ("/presented.js", "text/javascript; charset=utf-8", include_str!("../../web/presented.js")),
     ("/viewer.js", "text/javascript; charset=utf-8", include_str!("../../web/viewer.js")),
     ("/ar.js", "text/javascript; charset=utf-8", include_str!("../../web/ar.js")),
     ("/vr.js", "text/javascript; charset=utf-8", include_str!("../../web/vr.js")),

@@ -5,6 +5,8 @@
 // 2. Grabs the shown video frame (image A), drags the mouse ~200 px across the video, waits for
 //    a frame info answering a pose sent after the drag plus ≥ 5 more decoded frames, grabs
 //    image B, and requires a mean absolute RGB difference > 2 (the scene turned).
+//    Then waits for the page to have matched ≥ 20 presented frames to their poses (by RTP
+//    timestamp) and requires a pose → presented latency between 1 ms and 2 s.
 // 3. Opens ar.html and waits for ≥ 5 decoded frames there.
 // Neither page may report errors. Prints one JSON line ({"ok":true,...} or {"ok":false,
 // "error":...}) and exits 0 or 1. The whole run is limited to 120 s.
@@ -91,7 +93,13 @@ async function run(context) {
   const end = await snapshot(page);
   noErrors('viewer', end, pageErrors);
   if (!(diff > 2.0)) throw new Error(`the view did not change after dragging (mean abs diff ${diff.toFixed(3)} ≤ 2)`);
-  Object.assign(result, { framesDecoded: end.framesDecoded, meanAbsDiff: Number(diff.toFixed(3)), width: size.width, height: size.height });
+  const presented = await waitFor('20 presented frames matched to their poses', () => page.evaluate(() => window.nephele.presented),
+    (p) => p.matched >= 20 && p.p50 != null, 20_000);
+  if (!(presented.p50 > 1 && presented.p50 < 2000)) throw new Error(`pose → presented latency ${presented.p50} ms is not plausible`);
+  Object.assign(result, {
+    framesDecoded: end.framesDecoded, meanAbsDiff: Number(diff.toFixed(3)), width: size.width, height: size.height,
+    presentedMatched: presented.matched, presentedP50Ms: Number(presented.p50.toFixed(1)), infoP50Ms: presented.info_p50 == null ? null : Number(presented.info_p50.toFixed(1)),
+  });
   await page.close({ runBeforeUnload: false });
 
   // ── AR ──

@@ -472,6 +472,9 @@ async fn peer_loop(
             return;
         }
     };
+    // The RTP clock as the track's packetizer advances it: each sample moves it by its
+    // duration in whole 90 kHz ticks.
+    let mut rtp_ticks = 0u32;
     loop {
         tokio::select! {
             cmd = commands.recv() => match cmd {
@@ -485,8 +488,10 @@ async fn peer_loop(
                 },
                 Some(PeerCommand::Video { access_unit, duration, frame, mut times }) => {
                     let t = Instant::now();
+                    times.rtp_ticks = rtp_ticks;
                     let ev = match peer.send_video(access_unit, duration).await {
                         Ok(()) => {
+                            rtp_ticks = rtp_ticks.wrapping_add((duration.as_secs_f64() * f64::from(crate::wire::media::H264_CLOCK_HZ)) as u32);
                             times.send_ms = t.elapsed().as_secs_f64() * 1e3;
                             Event::Sent { session: session.clone(), frame, times }
                         }

@@ -93,12 +93,15 @@ pub fn candidate_json(init: &RTCIceCandidateInit) -> Value {
 }
 
 /// H.264 constrained baseline 3.1, packetization mode 1, NACK/PLI/FIR.
+/// The RTP clock of H.264 (RFC 6184).
+pub const H264_CLOCK_HZ: u32 = 90_000;
+
 pub fn h264_codec() -> RTCRtpCodecParameters {
     let fb = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
     RTCRtpCodecParameters {
         capability: RTCRtpCodecCapability {
             mime_type: webrtc::api::media_engine::MIME_TYPE_H264.into(),
-            clock_rate: 90_000,
+            clock_rate: H264_CLOCK_HZ,
             channels: 0,
             sdp_fmtp_line: H264_FMTP.into(),
             rtcp_feedback: vec![fb("nack", ""), fb("nack", "pli"), fb("ccm", "fir")],

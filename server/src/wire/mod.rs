@@ -534,6 +534,11 @@ pub struct FrameTimes {
     /// From the frame's start to its pixels being ready (rendered, gathered, composed).
     #[serde(default)]
     pub ready_ms: f64,
+    /// Where the frame sits on the stream's 90 kHz RTP clock: its RTP timestamp minus the
+    /// first frame's (wrapping). The page matches each presented video frame to its pose by
+    /// it (`requestVideoFrameCallback` reports the RTP timestamp).
+    #[serde(default)]
+    pub rtp_ticks: u32,
     /// RGBA → I420.
     pub convert_ms: f64,
     pub encode_ms: f64,
