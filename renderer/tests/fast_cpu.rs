@@ -2,7 +2,10 @@
 //! procedural ones, one-hit and multi-hit, several step scales, a batch of views of mixed
 //! sizes, and views where the footprint prepass cannot help (camera inside the box). Its σ is
 //! the reference's to the bit and its network differs only by fused multiply-add rounding, so
-//! the tolerance is one 8-bit level on ≤ 0.1% of pixels and no pixel off by more than 3.
+//! the tolerance is one 8-bit level on ≤ 0.1% of pixels, and with one hit per ray no pixel off
+//! by more than 3. With multi-hit a sample exactly on a cell face (read from the other cell's
+//! brick: the same value up to rounding) can tip a segment across τ, which changes that
+//! pixel's blend: such pixels stay within the 0.1%.
 
 mod common;
 
@@ -21,12 +24,13 @@ fn lego() -> Arc<Asset> {
 
 /// Renders `views` on both CPU backends and checks the fast one against the reference.
 fn agree(what: &str, asset: &Arc<Asset>, views: &[ViewRequest], settings: &RenderSettings) {
+    let one_hit = settings.hit_rule(&asset.march.hits).one_hit();
     let reference = CpuBackend.prepare(asset.clone()).unwrap().render(views, settings).unwrap();
     let fast = FastCpuBackend.prepare(asset.clone()).unwrap().render(views, settings).unwrap();
     assert_eq!(fast.frames.len(), views.len());
     for (i, (r, f)) in reference.frames.iter().zip(&fast.frames).enumerate() {
         let d = common::diff(r, f, 1, 1e-3 * asset.march.step * settings.step_scale);
-        assert!(d.max_abs <= 3 && d.frac_over <= 0.001 && d.hit_mismatch <= 0.001 && d.depth_off <= 0.001, "{what}, view {i}: {d:?}");
+        assert!((d.max_abs <= 3 || !one_hit) && d.frac_over <= 0.001 && d.hit_mismatch <= 0.001 && d.depth_off <= 0.001, "{what}, view {i}: {d:?}");
     }
     // The same rays hit and get the same queries, up to the pixels above.
     let close = |a: u64, b: u64| a.abs_diff(b) as f64 <= 1.0 + 1e-3 * b as f64;
@@ -41,10 +45,12 @@ fn orbit(w: u32, h: u32, azimuth: f64, elevation: f64, distance: f64) -> ViewReq
 fn lego_matches_the_reference_one_hit_and_multi_hit() {
     let asset = lego();
     let views = [orbit(160, 120, 35.0, 25.0, 4.0), orbit(97, 61, 200.0, -10.0, 3.0), orbit(64, 64, 90.0, 80.0, 6.0)];
-    agree("one hit", &asset, &views, &RenderSettings::default());
-    agree("multi-hit τ 0.1", &asset, &views, &RenderSettings { hit_tau: Some(0.1), max_hits: Some(3), ..Default::default() });
-    agree("half step", &asset, &views[..1], &RenderSettings { step_scale: 0.5, ..Default::default() });
-    agree("double step, stop ratio", &asset, &views[..1], &RenderSettings { step_scale: 2.0, stop_ratio: 0.5, ..Default::default() });
+    let one_hit = RenderSettings { hit_tau: Some(1.0), ..Default::default() };
+    agree("one hit", &asset, &views, &one_hit);
+    agree("the asset's multi-hit rule", &asset, &views, &RenderSettings::default());
+    agree("multi-hit τ 0.05", &asset, &views, &RenderSettings { hit_tau: Some(0.05), max_hits: Some(3), ..Default::default() });
+    agree("half step", &asset, &views[..1], &RenderSettings { step_scale: 0.5, ..one_hit });
+    agree("double step, stop ratio", &asset, &views[..1], &RenderSettings { step_scale: 2.0, stop_ratio: 0.5, ..one_hit });
 }
 
 #[test]

@@ -115,6 +115,8 @@ pub enum BenchCommand {
         /// print ms per view of each: what batching a render task saves.
         #[arg(long, default_value_t = 0)]
         batch: usize,
+        #[command(flatten)]
+        knobs: super::RenderKnobs,
     },
     /// Many users on one server (NEPHELE §6.2): 1, 2, 4, 8 real replay clients, each
     /// replaying the orbit at its own phase, with batching on and off, per backend; plus
@@ -175,7 +177,8 @@ pub fn run(what: BenchCommand) -> Result<()> {
             }
             Ok(())
         }
-        BenchCommand::Render { asset, sizes, backends, runs, distance, batch } => {
+        BenchCommand::Render { asset, sizes, backends, runs, distance, batch, knobs } => {
+            let settings = knobs.settings()?;
             let a = load_asset(&asset)?;
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
             let mut rows = Vec::new();
@@ -183,9 +186,9 @@ pub fn run(what: BenchCommand) -> Result<()> {
             for b in backends {
                 let backend = make_backend(b)?;
                 eprintln!("benchmarking {} ...", backend.name());
-                rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance)?);
+                rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance, &settings)?);
                 if batch > 1 {
-                    batches.extend(bench_batch(backend.as_ref(), a.clone(), &sizes, runs, distance, batch)?);
+                    batches.extend(bench_batch(backend.as_ref(), a.clone(), &sizes, runs, distance, batch, &settings)?);
                 }
             }
             let peak = nephele_renderer::mlp::peak_fma_gflops();
@@ -289,17 +292,17 @@ pub fn bench_render(
     sizes: &[(u32, u32)],
     runs: usize,
     distance: f64,
+    settings: &RenderSettings,
 ) -> Result<Vec<RenderBenchRow>> {
     let prepared = backend.prepare(asset)?;
-    let settings = RenderSettings::default();
     let mut rows = Vec::new();
     for &(w, h) in sizes {
         let view = View::orbit(DVec3::ZERO, distance, 35.0, 25.0, Intrinsics::from_fov_x(w, h, 0.69));
         let req = [ViewRequest::new(view)];
-        prepared.render(&req, &settings)?;
+        prepared.render(&req, settings)?;
         let mut samples = Vec::new();
         for _ in 0..runs.max(1) {
-            samples.push(prepared.render(&req, &settings)?.stats);
+            samples.push(prepared.render(&req, settings)?.stats);
         }
         samples.sort_by(|a, b| a.total_ms.total_cmp(&b.total_ms));
         let s = samples[samples.len() / 2];
@@ -336,9 +339,9 @@ pub fn bench_batch(
     runs: usize,
     distance: f64,
     n: usize,
+    settings: &RenderSettings,
 ) -> Result<Vec<BatchRow>> {
     let prepared = backend.prepare(asset)?;
-    let settings = RenderSettings::default();
     let median = |mut v: Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
@@ -348,15 +351,15 @@ pub fn bench_batch(
         let views: Vec<ViewRequest> = (0..n)
             .map(|i| ViewRequest::new(View::orbit(DVec3::ZERO, distance, 35.0 + 360.0 * i as f64 / n as f64, 25.0, Intrinsics::from_fov_x(w, h, 0.69))))
             .collect();
-        prepared.render(&views, &settings)?;
+        prepared.render(&views, settings)?;
         let (mut together, mut alone) = (Vec::new(), Vec::new());
         for _ in 0..runs.max(1) {
             let t = std::time::Instant::now();
-            prepared.render(&views, &settings)?;
+            prepared.render(&views, settings)?;
             together.push(t.elapsed().as_secs_f64() * 1e3 / n as f64);
             let t = std::time::Instant::now();
             for v in &views {
-                prepared.render(std::slice::from_ref(v), &settings)?;
+                prepared.render(std::slice::from_ref(v), settings)?;
             }
             alone.push(t.elapsed().as_secs_f64() * 1e3 / n as f64);
         }
