@@ -117,6 +117,13 @@ impl TextureCubes {
     /// (clamped to the border cell, as the GPU kernel does).
     #[inline(always)]
     pub fn sample<const C: usize>(&self, p: Vec3) -> [f32; C] {
+        self.sample_with(p, |at| self.corner(at))
+    }
+
+    /// [`Self::sample`] reading corner `at` (a corner number, brick-major) through `read`,
+    /// for callers that keep the values in another form (the fast renderer's 8-bit copy).
+    #[inline(always)]
+    pub fn sample_with<const C: usize>(&self, p: Vec3, read: impl Fn(usize) -> [f32; C]) -> [f32; C] {
         let g = self.to_fine(p);
         // Truncate-then-clamp equals floor-then-clamp for every input (negatives clamp to 0).
         let cell = (g / self.brick as f32).as_ivec3().as_vec3().clamp(Vec3::ZERO, Vec3::splat(self.grid as f32 - 1.0));
@@ -124,14 +131,25 @@ impl TextureCubes {
         if brick < 0 {
             return [0.0; C];
         }
-        self.sample_in_brick(brick as usize, cell, g)
+        self.sample_in_brick_with(brick as usize, cell, g, read)
     }
 
     /// Trilinear lookup of fine-grid point `g` in the brick of index cell `cell` (the march
     /// already knows both); `g` is clamped into the brick.
     #[inline(always)]
     pub fn sample_in_brick<const C: usize>(&self, brick: usize, cell: Vec3, g: Vec3) -> [f32; C] {
+        self.sample_in_brick_with(brick, cell, g, |at| self.corner(at))
+    }
+
+    /// The `C` values of corner `at`.
+    #[inline(always)]
+    fn corner<const C: usize>(&self, at: usize) -> [f32; C] {
         debug_assert_eq!(C, self.channels as usize);
+        self.values[at * C..(at + 1) * C].try_into().expect("C channels")
+    }
+
+    #[inline(always)]
+    fn sample_in_brick_with<const C: usize>(&self, brick: usize, cell: Vec3, g: Vec3, read: impl Fn(usize) -> [f32; C]) -> [f32; C] {
         let r = self.brick as f32;
         let u = (g - cell * r).clamp(Vec3::ZERO, Vec3::splat(r));
         // u ≥ 0, so truncation is floor (and stays inline; `floor` is a libm call on
@@ -146,9 +164,9 @@ impl TextureCubes {
             let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
             let w = if dx == 1 { f.x } else { 1.0 - f.x } * if dy == 1 { f.y } else { 1.0 - f.y } * if dz == 1 { f.z } else { 1.0 - f.z };
             let (x, y, z) = ((base.x + dx) as usize, (base.y + dy) as usize, (base.z + dz) as usize);
-            let at = (brick_start + x + e * (y + e * z)) * C;
-            for (c, o) in out.iter_mut().enumerate() {
-                *o += w * self.values[at + c];
+            let v = read(brick_start + x + e * (y + e * z));
+            for (o, v) in out.iter_mut().zip(v) {
+                *o += w * v;
             }
         }
         out

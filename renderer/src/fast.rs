@@ -80,33 +80,10 @@ impl DiffuseBytes {
         })
     }
 
-    /// [`TextureCubes::sample`]`::<4>` with the same operations in the same order.
+    /// [`TextureCubes::sample`]`::<4>`, reading the bytes (the same f32 values).
     #[inline(always)]
     fn sample(&self, c: &TextureCubes, p: Vec3) -> [f32; 4] {
-        let g = c.to_fine(p);
-        let cell = (g / c.brick as f32).as_ivec3().as_vec3().clamp(Vec3::ZERO, Vec3::splat(c.grid as f32 - 1.0));
-        let brick = c.brick_at(cell.as_uvec3());
-        if brick < 0 {
-            return [0.0; 4];
-        }
-        let r = c.brick as f32;
-        let u = (g - cell * r).clamp(Vec3::ZERO, Vec3::splat(r));
-        let base = u.as_uvec3().as_vec3().min(Vec3::splat(r - 1.0));
-        let f = u - base;
-        let base = base.as_uvec3();
-        let e = c.brick as usize + 1;
-        let start = brick as usize * c.brick_corners();
-        let mut out = [0.0; 4];
-        for corner in 0..8u32 {
-            let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
-            let w = if dx == 1 { f.x } else { 1.0 - f.x } * if dy == 1 { f.y } else { 1.0 - f.y } * if dz == 1 { f.z } else { 1.0 - f.z };
-            let (x, y, z) = ((base.x + dx) as usize, (base.y + dy) as usize, (base.z + dz) as usize);
-            let v = self.corners[start + x + e * (y + e * z)];
-            for (o, b) in out.iter_mut().zip(v) {
-                *o += w * (b as f32 / 255.0);
-            }
-        }
-        out
+        c.sample_with(p, |at| self.corners[at].map(|b| b as f32 / 255.0))
     }
 }
 
