@@ -239,7 +239,8 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
     eprintln!("teacher step {}; {} train and {} held-out views", teacher.step, train.images.len(), test.images.len());
 
-    let base_cfg = DistillConfig { psh_grid: 256, ..DistillConfig::default_for(opts.nolf_steps) };
+    // The ablation rows are NEPHELE's i-NOLF: one hit per ray (the τ rows below add multi-hit).
+    let base_cfg = DistillConfig { psh_grid: 256, hits: HitRule::default(), ..DistillConfig::default_for(opts.nolf_steps) };
     let t = Instant::now();
     let geometry: Geometry = distill::geometry(&teacher, &train, &base_cfg).map_err(anyhow::Error::msg)?;
     eprintln!("geometry: {} density bricks, {} hits in {:.1} s", geometry.density.brick_count(), geometry.hits.rays.len(), t.elapsed().as_secs_f64());
