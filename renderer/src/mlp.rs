@@ -200,6 +200,7 @@ fn dense_tile<const OUT: usize, const BLOCK: usize, const FUSED: bool>(
     y: &mut [[f32; TILE]; OUT],
     relu: bool,
 ) {
+    const { assert!(OUT % BLOCK == 0, "blocks must tile the outputs") };
     for o0 in (0..OUT).step_by(BLOCK) {
         let mut acc = [[0.0f32; TILE]; BLOCK];
         for (j, a) in acc.iter_mut().enumerate() {
@@ -279,6 +280,7 @@ pub mod simd {
     /// [`super::dense_tile`] in AVX-512 registers: `BLOCK` accumulators of 16 rays each.
     #[target_feature(enable = "avx512f")]
     fn dense512<const OUT: usize, const BLOCK: usize>(wt: &[f32], b: &[f32; OUT], x: &[[f32; TILE]], y: &mut [[f32; TILE]; OUT], relu: bool) {
+        const { assert!(OUT % BLOCK == 0, "blocks must tile the outputs") };
         for o0 in (0..OUT).step_by(BLOCK) {
             let mut acc = [_mm512_setzero_ps(); BLOCK];
             for (j, a) in acc.iter_mut().enumerate() {
@@ -303,6 +305,7 @@ pub mod simd {
     /// [`super::dense_tile`] in AVX2 registers: `BLOCK` outputs × two 8-ray halves.
     #[target_feature(enable = "avx2,fma")]
     fn dense256<const OUT: usize, const BLOCK: usize>(wt: &[f32], b: &[f32; OUT], x: &[[f32; TILE]], y: &mut [[f32; TILE]; OUT], relu: bool) {
+        const { assert!(OUT % BLOCK == 0, "blocks must tile the outputs") };
         for o0 in (0..OUT).step_by(BLOCK) {
             let mut acc = [[_mm256_setzero_ps(); 2]; BLOCK];
             for (j, a) in acc.iter_mut().enumerate() {
@@ -343,9 +346,9 @@ pub mod simd {
     #[target_feature(enable = "avx2,fma")]
     fn avx2(k: &MlpKernel, x: &TileInput) -> [[f32; TILE]; 4] {
         let mut h0 = [[0.0f32; TILE]; HIDDEN];
-        dense256::<HIDDEN, 6>(&k.w0t, &k.b0, &x[..k.input], &mut h0, true);
+        dense256::<HIDDEN, 4>(&k.w0t, &k.b0, &x[..k.input], &mut h0, true);
         let mut h1 = [[0.0f32; TILE]; HIDDEN];
-        dense256::<HIDDEN, 6>(&k.w1t, &k.b1, &h0, &mut h1, true);
+        dense256::<HIDDEN, 4>(&k.w1t, &k.b1, &h0, &mut h1, true);
         let mut o = [[0.0f32; TILE]; 4];
         dense256::<4, 4>(&k.w2t, &k.b2, &h1, &mut o, false);
         o
@@ -450,6 +453,11 @@ mod tests {
             }
             let got = k.forward_tile(&x);
             let portable = tile_body::<8, false>(&k, &x);
+            // Every vector level this CPU has, not only the widest.
+            #[cfg(target_arch = "x86_64")]
+            let avx2 = (simd::level() != simd::Level::Portable).then(|| simd::tile_avx2(&k, &x));
+            #[cfg(not(target_arch = "x86_64"))]
+            let avx2: Option<[[f32; TILE]; 4]> = None;
             for l in 0..TILE {
                 let xs: Vec<f32> = (0..input).map(|i| x[i][l]).collect();
                 let want = m.forward(&xs);
@@ -458,6 +466,7 @@ mod tests {
                     let tol = 1e-5 * (1.0 + want[j].abs());
                     assert!((got[j][l] - want[j]).abs() <= tol, "input {input} lane {l} out {j}: {} vs {}", got[j][l], want[j]);
                     assert!((portable[j][l] - want[j]).abs() <= tol);
+                    assert!(avx2.is_none_or(|a| (a[j][l] - want[j]).abs() <= tol), "AVX2, input {input}");
                 }
             }
         }

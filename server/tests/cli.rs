@@ -26,6 +26,40 @@ fn render_writes_pngs() {
     assert!(depth.exists());
 }
 
+/// RGB bytes of a PNG `nephele render` wrote.
+fn read_rgb(path: &std::path::Path) -> Vec<u8> {
+    let mut reader = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap())).read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    buf
+}
+
+/// The fast CPU renderer at every vector level this CPU has (AVX-512/AVX2 as detected,
+/// AVX2 capped, portable code) draws what the reference draws, one-hit and multi-hit.
+#[test]
+fn every_simd_level_renders_what_the_reference_renders() {
+    for tau in ["1", "0.1"] {
+        let reference = tmp(&format!("ref-{tau}.png"));
+        let o = nephele(&["render", "builtin:lego", "--size", "96x72", "--backend", "cpu-ref", "--hit-tau", tau, "--out", reference.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let want = read_rgb(&reference);
+        for level in ["", "avx2", "portable"] {
+            let out = tmp(&format!("fast-{tau}-{level}.png"));
+            let o = Command::new(env!("CARGO_BIN_EXE_nephele"))
+                .args(["render", "builtin:lego", "--size", "96x72", "--backend", "cpu", "--hit-tau", tau, "--out", out.to_str().unwrap()])
+                .env("NEPHELE_SIMD", level)
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            let got = read_rgb(&out);
+            assert_eq!(got.len(), want.len());
+            let off = got.chunks(3).zip(want.chunks(3)).filter(|(a, b)| a.iter().zip(*b).any(|(x, y)| x.abs_diff(*y) > 1)).count();
+            assert!(off * 1000 <= got.len() / 3, "τ {tau}, NEPHELE_SIMD={level:?}: {off} pixels off by more than one level");
+        }
+    }
+}
+
 #[test]
 fn render_from_a_nerf_pose_file() {
     let pose = tmp("pose.json");
