@@ -217,6 +217,7 @@ impl HashTables {
 }
 
 /// A query point's 8 hash corners (see [`HashTables::corners`]).
+#[derive(Clone, Copy)]
 struct Corners {
     slot: [usize; 8],
     key: [u32; 8],
@@ -513,17 +514,19 @@ impl FastPrepared {
         let mut diffuse = [[0.0f32; 4]; TILE];
         let mut encoded = [0.0f32; MAX_INPUT];
         let psh = &asset.psh;
+        let mut corners = [Corners { slot: [0; 8], key: [psh::EMPTY_KEY; 8], weight: [0.0; 8] }; TILE];
         for tile in queries.chunks(TILE) {
             // The hash sends neighbouring corners to scattered slots: find them all first
             // and prefetch, so the tile's cache misses overlap instead of queueing.
-            let corners: [Corners; TILE] = std::array::from_fn(|lane| {
-                let c = self.hash.corners(psh, tile.get(lane).map_or(Vec3::ZERO, |q| q.p_hit));
-                for &slot in &c.slot {
+            // (A plain loop, not `array::from_fn`: its closure would not be inlined into the
+            // x86-64-v3 band.)
+            for (lane, q) in tile.iter().enumerate() {
+                corners[lane] = self.hash.corners(psh, q.p_hit);
+                for &slot in &corners[lane].slot {
                     prefetch(&psh.keys, slot);
                     prefetch(&psh.values, slot * features);
                 }
-                c
-            });
+            }
             for (lane, q) in tile.iter().enumerate() {
                 diffuse[lane] = match &self.diffuse {
                     Some(bytes) => bytes.sample(&asset.diffuse, q.p_hit),
