@@ -17,6 +17,11 @@ pub trait MlpBackward {
 impl MlpBackward for Mlp {
     fn backward(&self, input: &[f32], tape: &MlpTape, d_output: &[f32], grad: &mut [f32], mut d_input: Option<&mut [f32]>) {
         let rows = tape.rows;
+        if rows == 0 && input.is_empty() && d_output.is_empty() {
+            // No rows (e.g. a chunk whose samples all fell in empty space, whose tape was
+            // never filled): nothing to add, nothing to pass back.
+            return;
+        }
         let layers = self.widths().len() - 1;
         assert_eq!(grad.len(), self.params().len());
         assert_eq!(input.len(), rows * self.input_width());
@@ -70,6 +75,21 @@ mod tests {
     use rand::{Rng, SeedableRng, rngs::SmallRng};
 
     use super::*;
+
+    /// A chunk whose samples all fell in empty space has nothing to colour: its colour tape
+    /// was never filled (no layers). Found by training on the synthetic `mixed` scene.
+    #[test]
+    fn backward_with_no_rows_is_a_no_op() {
+        let mlp = Mlp::new(&[5, 8, 3], &mut SmallRng::seed_from_u64(1));
+        let mut grad = vec![0.0; mlp.params().len()];
+        let mut d_input: Vec<f32> = Vec::new();
+        mlp.backward(&[], &MlpTape::default(), &[], &mut grad, Some(&mut d_input));
+        assert!(grad.iter().all(|g| *g == 0.0));
+        let mut tape = MlpTape::default();
+        mlp.forward(&[], &mut tape);
+        mlp.backward(&[], &tape, &[], &mut grad, None);
+        assert!(grad.iter().all(|g| *g == 0.0));
+    }
 
     fn setup(widths: &[usize], rows: usize, seed: u64) -> (Mlp, Vec<f32>, Vec<f32>) {
         let mut rng = SmallRng::seed_from_u64(seed);
