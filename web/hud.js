@@ -13,7 +13,7 @@ export function hudLines(conn, extra = []) {
     // Pose sent → its frame on screen (matched by RTP timestamp); the frame-info message
     // arrives earlier, before the frame is decoded.
     ['latency', h.latencyMs == null ? '–' : `${h.latencyMs.toFixed(0)} ms`],
-    ['info latency', h.infoLatencyMs == null ? '–' : `${h.infoLatencyMs.toFixed(0)} ms`],
+    ['info msg', h.infoLatencyMs == null ? '–' : `${h.infoLatencyMs.toFixed(0)} ms`],
     ['bitrate', `${h.kbps.toFixed(0)} kbit/s`],
     ['resolution', h.width ? `${h.width}×${h.height}` : '–'],
     // The server renders at this fraction of the stream size when moving (dynamic

@@ -322,12 +322,10 @@ impl Footprints {
     fn band_bounds(&self, width: u32, y0: u32, n: usize) -> RayBounds {
         let mut b = RayBounds { t_lo: vec![f32::INFINITY; n], t_hi: vec![f32::NEG_INFINITY; n] };
         let y_end = y0 + (n as u32).div_ceil(width);
-        let mut last_bin = u32::MAX;
         for y_bin in (y0 / self.bin_rows)..=((y_end - 1) / self.bin_rows) {
-            if y_bin == last_bin || y_bin as usize >= self.bins.len() {
+            if y_bin as usize >= self.bins.len() {
                 continue;
             }
-            last_bin = y_bin;
             for &i in &self.bins[y_bin as usize] {
                 let r = &self.rects[i as usize];
                 // Each rectangle once per band: in the first bin of the band it touches.
@@ -469,10 +467,7 @@ impl FastPrepared {
                 // No live cell's footprint covers this pixel: the ray takes no sample.
                 MultiHit::default()
             } else if rule.one_hit() {
-                let m = self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut ());
-                let mut out = MultiHit { march: m, count: u32::from(m.w_max > 0.0), ..Default::default() };
-                (out.t[0], out.beta[0]) = (m.t_hit, 1.0);
-                out
+                MultiHit::one(self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut ()))
             } else {
                 let mut segments = Segments::new(rule.gap_steps * step);
                 let m = self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut segments);

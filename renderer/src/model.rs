@@ -148,10 +148,7 @@ pub fn march(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSett
 /// exactly [`march`] with its hit as the only query.
 pub fn march_multi(density: &TextureCubes, o: Vec3, d: Vec3, step: f32, s: &RenderSettings, rule: &HitRule) -> MultiHit {
     if rule.one_hit() {
-        let m = march(density, o, d, step, s);
-        let mut out = MultiHit { march: m, count: u32::from(m.w_max > 0.0), ..Default::default() };
-        (out.t[0], out.beta[0]) = (m.t_hit, 1.0);
-        return out;
+        return MultiHit::one(march(density, o, d, step, s));
     }
     let mut segments = Segments::new(rule.gap_steps * step);
     let m = march_with(density, o, d, step, s, &mut segments);
@@ -287,6 +284,15 @@ pub struct MultiHit {
     pub t: [f32; MAX_HITS],
     pub beta: [f32; MAX_HITS],
     pub count: u32,
+}
+
+impl MultiHit {
+    /// The one-hit rule: the max-weight sample as the only query (none without weight).
+    pub fn one(m: MarchHit) -> Self {
+        let mut out = Self { march: m, count: u32::from(m.w_max > 0.0), ..Default::default() };
+        (out.t[0], out.beta[0]) = (m.t_hit, 1.0);
+        out
+    }
 }
 
 /// [`march`] reporting every sample to `tracker`.
