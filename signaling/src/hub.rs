@@ -141,6 +141,9 @@ pub enum SignalError {
     /// A client sent messages faster than its allowance; the connection is closed.
     #[error("more than {burst} messages at once or {per_s} per second on average; disconnected")]
     RateLimited { burst: f64, per_s: f64 },
+    /// An address started more sessions than its allowance.
+    #[error("your address started more than {burst} sessions at once or {per_min} per minute; try again in {wait_s:.0} s")]
+    JoinRate { burst: u32, per_min: u32, wait_s: f64 },
     /// Too many sessions from one address are joined but not connected yet.
     #[error("{pending} sessions from your address are still connecting (limit {limit}); finish or leave one first")]
     PendingJoins { pending: usize, limit: usize },
@@ -158,7 +161,7 @@ impl SignalError {
             Self::BadRequest(_) => ErrorCode::BadRequest,
             Self::WrongRole { .. } => ErrorCode::WrongRole,
             Self::NotJoined(_) => ErrorCode::NotJoined,
-            Self::RateLimited { .. } | Self::PendingJoins { .. } => ErrorCode::RateLimited,
+            Self::RateLimited { .. } | Self::PendingJoins { .. } | Self::JoinRate { .. } => ErrorCode::RateLimited,
         }
     }
 }
@@ -194,6 +197,8 @@ pub struct HubStats {
     pub connections: usize,
     /// Connections closed at accept because a cap was reached, since start.
     pub connections_refused: u64,
+    /// Connections without a role closed to make room for newer ones (the server's count).
+    pub connections_evicted: u64,
 }
 
 #[derive(Debug)]
@@ -237,6 +242,8 @@ pub struct Hub {
     allowance: BTreeMap<ConnId, (f64, Instant)>,
     /// The peer address of each connection the IO edge told us.
     addresses: BTreeMap<ConnId, IpAddr>,
+    /// New-session allowance of each address that joined lately: (tokens, last refill).
+    join_allowance: BTreeMap<IpAddr, (f64, Instant)>,
     sessions: BTreeMap<String, Session>,
     next_session: u64,
     /// Starts every session id; unique per hub so that ids never repeat across a restart
@@ -254,6 +261,7 @@ impl Hub {
             peers: BTreeMap::new(),
             allowance: BTreeMap::new(),
             addresses: BTreeMap::new(),
+            join_allowance: BTreeMap::new(),
             sessions: BTreeMap::new(),
             next_session: 1,
             session_prefix: "s".into(),
@@ -340,6 +348,11 @@ impl Hub {
     /// `conn` is gone: its master hears `leave` (unless the session's video is connected:
     /// the stream is peer to peer and belongs to the master now, which ends it when the peer
     /// connection closes), or its clients hear `master_lost`.
+    /// Whether `conn` holds a role: a registered master, or a client paired in a session.
+    pub fn holds_role(&self, conn: ConnId) -> bool {
+        matches!(self.peers.get(&conn), Some(Peer::Master(_) | Peer::Client { session: Some(_) }))
+    }
+
     pub fn disconnect(&mut self, conn: ConnId, _now: Instant) -> Vec<Outgoing> {
         self.allowance.remove(&conn);
         self.addresses.remove(&conn);
@@ -360,8 +373,27 @@ impl Hub {
         }
     }
 
-    /// Drop masters silent for longer than `heartbeat_timeout`.
+    /// Refills `address`'s new-session allowance; an error if it has no whole session left.
+    fn refill_joins(&mut self, address: IpAddr, now: Instant) -> Result<(), SignalError> {
+        let limits = &self.cfg.limits;
+        let (burst, per_min) = (limits.join_burst_per_address.max(1), limits.joins_per_address_per_minute.max(1));
+        let per_s = f64::from(per_min) / 60.0;
+        let (tokens, last) = self.join_allowance.entry(address).or_insert((f64::from(burst), now));
+        *tokens = (*tokens + now.saturating_duration_since(*last).as_secs_f64() * per_s).min(f64::from(burst));
+        *last = now;
+        if *tokens >= 1.0 {
+            Ok(())
+        } else {
+            Err(SignalError::JoinRate { burst, per_min, wait_s: ((1.0 - *tokens) / per_s).ceil() })
+        }
+    }
+
+    /// Drop masters silent for longer than `heartbeat_timeout`, and forget addresses whose
+    /// new-session allowance is full again.
     pub fn tick(&mut self, now: Instant) -> Vec<Outgoing> {
+        let limits = &self.cfg.limits;
+        let refill = Duration::from_secs_f64(f64::from(limits.join_burst_per_address.max(1)) * 60.0 / f64::from(limits.joins_per_address_per_minute.max(1)));
+        self.join_allowance.retain(|_, (_, last)| now.saturating_duration_since(*last) < refill);
         let timeout = self.cfg.heartbeat_timeout;
         let stale: Vec<(ConnId, String)> = self
             .peers
@@ -416,6 +448,7 @@ impl Hub {
             sessions: self.sessions.len(),
             connections: 0,
             connections_refused: 0,
+            connections_evicted: 0,
         }
     }
 
@@ -447,6 +480,7 @@ impl Hub {
                     },
                 },
                 token.as_deref(),
+                now,
             ),
             (
                 Peer::Fresh,
@@ -547,7 +581,7 @@ impl Hub {
         }
     }
 
-    fn join(&mut self, conn: ConnId, req: JoinRequest, token: Option<&str>) -> Res {
+    fn join(&mut self, conn: ConnId, req: JoinRequest, token: Option<&str>, now: Instant) -> Res {
         Self::check_token(self.cfg.token.as_deref(), token)?;
         if let Some(Peer::Client {
             session: Some(session),
@@ -565,7 +599,14 @@ impl Hub {
                 return Err(SignalError::PendingJoins { pending, limit });
             }
         }
+        let address = self.addresses.get(&conn).copied();
+        if let Some(address) = address {
+            self.refill_joins(address, now)?;
+        }
         let master_conn = self.pick_master(&req.scene)?;
+        if let Some((tokens, _)) = address.and_then(|a| self.join_allowance.get_mut(&a)) {
+            *tokens -= 1.0;
+        }
         let session = format!("{}{}", self.session_prefix, self.next_session);
         self.next_session += 1;
         let Some(Peer::Master(master)) = self.peers.get_mut(&master_conn) else {
@@ -1332,6 +1373,7 @@ mod tests {
                 sessions: 0,
                 connections: 0,
                 connections_refused: 0,
+                connections_evicted: 0,
             }
         );
     }
@@ -1399,6 +1441,48 @@ mod tests {
         // refused connection was not closed).
         assert!(send(&mut hub, 1, json!({"type":"connected","session":sessions[0]}), now).is_empty());
         assert_eq!(json_of(&send(&mut hub, 12, join_json(), now)).len(), 2);
+    }
+
+    /// Found with `bench abuse`: a 4K join → pose → leave loop from one address, each
+    /// session admitted and left at once, took 40% of a bystander's frames on a server with
+    /// admission open. New sessions per address now come from a token bucket.
+    #[test]
+    fn new_sessions_per_address_are_throttled() {
+        let (mut hub, now) = hub_with(None);
+        (hub.cfg.limits.join_burst_per_address, hub.cfg.limits.joins_per_address_per_minute) = (3, 30);
+        add_master(&mut hub, 1, "m1", 100, now);
+        let (home, away): (IpAddr, IpAddr) = ("10.0.0.7".parse().unwrap(), "10.0.0.8".parse().unwrap());
+        hub.connect_from(ConnId(10), home, now);
+        // A burst of three join → leave cycles on one connection…
+        for _ in 0..3 {
+            assert_eq!(json_of(&send(&mut hub, 10, join_json(), now)).len(), 2);
+            assert_eq!(json_of(&send(&mut hub, 10, json!({"type":"leave"}), now)).len(), 1);
+        }
+        // …then the fourth is refused, on this connection or a new one from the address,
+        // and the connection stays open.
+        let (to, code, message) = error_code(&send(&mut hub, 10, join_json(), now));
+        assert_eq!((to, code.as_str()), (10, "rate_limited"), "{message}");
+        assert!(message.contains("30 per minute") && message.contains("try again in 2 s"), "{message}");
+        hub.connect_from(ConnId(11), home, now);
+        assert_eq!(error_code(&send(&mut hub, 11, join_json(), now)).1, "rate_limited");
+        // Another address is not held up.
+        hub.connect_from(ConnId(12), away, now);
+        assert_eq!(json_of(&send(&mut hub, 12, join_json(), now)).len(), 2);
+        // One session's worth comes back after 2 s (30 per minute), and only one.
+        let later = now + Duration::from_secs(2);
+        assert_eq!(json_of(&send(&mut hub, 11, join_json(), later)).len(), 2);
+        assert_eq!(error_code(&send(&mut hub, 10, join_json(), later)).1, "rate_limited");
+        // A refused join costs nothing: no master for the scene, no token taken.
+        let much_later = later + Duration::from_secs(60);
+        hub.connect_from(ConnId(13), home, much_later);
+        let unknown = json!({"type":"join","scene":"nowhere","mode":"viewer","width":64,"height":64,"fps":30});
+        for _ in 0..5 {
+            assert_eq!(error_code(&send(&mut hub, 13, unknown.clone(), much_later)).1, "unknown_scene");
+        }
+        assert_eq!(json_of(&send(&mut hub, 13, join_json(), much_later)).len(), 2);
+        // Addresses whose allowance is full again are forgotten.
+        hub.tick(much_later + Duration::from_secs(60));
+        assert!(hub.join_allowance.is_empty());
     }
 
     #[test]

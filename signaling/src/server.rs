@@ -130,7 +130,7 @@ impl SignalState {
     /// Current masters and load.
     pub fn stats(&self) -> crate::HubStats {
         let mut stats = self.lock().hub.stats();
-        (stats.connections, stats.connections_refused) = self.inner.gate.snapshot();
+        (stats.connections, stats.connections_refused, stats.connections_evicted) = self.inner.gate.snapshot();
         stats
     }
 
@@ -224,14 +224,13 @@ async fn upgrade(State(state): State<SignalState>, ws: WebSocketUpgrade, request
         .on_upgrade(move |socket| {
             let conn = ConnId(state.inner.next_conn.fetch_add(1, Ordering::Relaxed));
             async move {
-                run_connection(state, conn, peer, socket).await;
-                drop(permit);
+                run_connection(state, conn, peer, socket, permit).await;
             }
             .instrument(tracing::info_span!("signal", %conn))
         })
 }
 
-async fn run_connection(state: SignalState, conn: ConnId, peer: Option<IpAddr>, mut socket: WebSocket) {
+async fn run_connection(state: SignalState, conn: ConnId, peer: Option<IpAddr>, mut socket: WebSocket, permit: Option<Arc<ConnPermit>>) {
     let (tx, mut rx) = mpsc::channel(MASTER_SEND_QUEUE_LEN);
     {
         let mut core = state.lock();
@@ -249,8 +248,24 @@ async fn run_connection(state: SignalState, conn: ConnId, peer: Option<IpAddr>, 
     let mut deadline = tokio::time::Instant::now() + Duration::from_millis(limits.hello_timeout_ms.max(1));
     let mut greeted = false;
     let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + idle / 4, idle / 4);
+    let evicted = async {
+        match &permit {
+            Some(p) => p.evicted().await,
+            None => std::future::pending().await,
+        }
+    };
+    tokio::pin!(evicted);
     loop {
+        // Room may be made by closing this connection while it holds no role.
+        if let Some(p) = &permit {
+            p.set_evictable(!state.lock().hub.holds_role(conn));
+        }
         tokio::select! {
+            () = &mut evicted => {
+                tracing::debug!("closing a websocket without a role to make room for a newer connection");
+                let _ = tokio::time::timeout(Duration::from_secs(1), socket.send(Message::Close(None))).await;
+                break;
+            }
             _ = tokio::time::sleep_until(deadline) => {
                 let what = if greeted { "silent for the idle timeout" } else { "sent nothing within the hello timeout" };
                 tracing::debug!("closing a websocket that {what}");

@@ -153,7 +153,7 @@ async fn signaling_over_real_websockets() {
     assert_eq!(
         status,
         // Three websockets, and this GET's own connection.
-        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2,"connections":4,"connections_refused":0})
+        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2,"connections":4,"connections_refused":0,"connections_evicted":0})
     );
 
     // A client that goes away frees its slot and the master hears `leave`.
@@ -327,10 +327,65 @@ async fn connections_past_the_caps_are_closed_at_once() {
     }
     assert!(again.is_some(), "a closed socket did not free its place");
 
+    // At the total cap, sockets that hold a role are never pushed out: with two masters
+    // registered, a third socket is closed at once.
     let limits = nephele_limits::ConnLimits { max_connections: 2, ..Default::default() };
     let addr = start_with(HubConfig { limits, ..HubConfig::default() }).await;
-    let (_a, _b) = (connect(addr).await, connect(addr).await);
+    let (mut a, mut b) = (connect(addr).await, connect(addr).await);
+    for (ws, name) in [(&mut a, "farm-1"), (&mut b, "farm-2")] {
+        send(ws, json!({"type":"register","name":name,"capacity":4,"scenes":["cubes"]})).await;
+        assert_eq!(recv(ws).await["type"], "registered");
+    }
     assert!(connect_async(format!("ws://{addr}/signal")).await.is_err(), "a third socket past the total cap was accepted");
+}
+
+/// Closes within 5 s: the server's close frame, or the socket's end.
+async fn closed_by_server(ws: &mut Ws) -> bool {
+    tokio::time::timeout(Duration::from_secs(5), async {
+        loop {
+            match ws.next().await {
+                None | Some(Err(_)) | Some(Ok(Message::Close(_))) => return,
+                Some(Ok(_)) => continue,
+            }
+        }
+    })
+    .await
+    .is_ok()
+}
+
+/// Sockets that never join fill the total cap (from many addresses, each under its own
+/// cap): a newcomer still gets in, the oldest idle socket is closed for it, and a master
+/// and a client in a session are never the ones closed.
+#[tokio::test]
+async fn idle_sockets_at_the_total_cap_make_room_for_a_newcomer() {
+    let limits = nephele_limits::ConnLimits { max_connections: 6, hello_timeout_ms: 60_000, ..Default::default() };
+    let addr = start_with(HubConfig { limits, ..HubConfig::default() }).await;
+    let mut master = connect(addr).await;
+    send(&mut master, json!({"type":"register","name":"farm-1","capacity":4,"scenes":["cubes"]})).await;
+    assert_eq!(recv(&mut master).await["type"], "registered");
+    let (mut client, session) = join(addr, &mut master).await;
+    let mut idle = Vec::new();
+    for _ in 0..4 {
+        idle.push(connect(addr).await);
+        tokio::time::sleep(Duration::from_millis(20)).await; // admission order = age
+    }
+    // The cap is full (6). Three newcomers: each pushes out the oldest idle socket.
+    let mut newcomers = Vec::new();
+    for (n, oldest) in idle.iter_mut().take(3).enumerate() {
+        let ws = connect_async(format!("ws://{addr}/signal")).await;
+        assert!(ws.is_ok(), "newcomer {n} was refused at the total cap though idle sockets were open");
+        newcomers.push(ws.unwrap().0);
+        assert!(closed_by_server(oldest).await, "idle socket {n} (the oldest left) was not closed for newcomer {n}");
+    }
+    // One more newcomer joins (pushing out the last idle socket) and is paired; the master
+    // and the first client still work.
+    let (mut second, s2) = join(addr, &mut master).await;
+    assert!(closed_by_server(&mut idle[3]).await, "the last idle socket was not closed for the joining newcomer");
+    round_trip(&mut client, &mut master, &session).await;
+    round_trip(&mut second, &mut master, &s2).await;
+    let status = http_get(addr, "/status").await;
+    assert!(status["connections_evicted"].as_u64().unwrap() >= 3, "{status}");
+    assert_eq!(status["sessions"], 2, "{status}");
 }
 
 /// Headers that never finish, and websockets that never speak, are closed.

@@ -183,6 +183,12 @@ pub struct LimitArgs {
     /// Sessions from one IP address that may be joined but not yet connected.
     #[arg(long, default_value_t = ConnLimits::default().max_pending_joins_per_address)]
     pub max_pending_joins_per_address: usize,
+    /// New sessions one IP address may start in a burst…
+    #[arg(long, default_value_t = ConnLimits::default().join_burst_per_address)]
+    pub join_burst_per_address: u32,
+    /// …and per minute after it (beyond: `rate_limited`).
+    #[arg(long, default_value_t = ConnLimits::default().joins_per_address_per_minute)]
+    pub joins_per_address_per_minute: u32,
     /// Read and write buffer of each websocket, bytes.
     #[arg(long, default_value_t = ConnLimits::default().ws_buffer_bytes)]
     pub ws_buffer_bytes: usize,
@@ -209,10 +215,15 @@ impl LimitArgs {
             hello_timeout_ms: self.hello_timeout_ms,
             idle_timeout_ms: self.idle_timeout_ms,
             max_pending_joins_per_address: self.max_pending_joins_per_address,
+            join_burst_per_address: self.join_burst_per_address,
+            joins_per_address_per_minute: self.joins_per_address_per_minute,
             ws_buffer_bytes: self.ws_buffer_bytes,
         };
         if limits.max_connections == 0 || limits.max_connections_per_address == 0 {
             anyhow::bail!("--max-connections and --max-connections-per-address must be at least 1");
+        }
+        if limits.join_burst_per_address == 0 || limits.joins_per_address_per_minute == 0 {
+            anyhow::bail!("--join-burst-per-address and --joins-per-address-per-minute must be at least 1");
         }
         if !(self.client_messages_per_s > 0.0 && self.client_message_burst >= 1.0) {
             anyhow::bail!("--client-messages-per-s must be > 0 and --client-message-burst ≥ 1");

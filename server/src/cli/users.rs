@@ -203,6 +203,14 @@ pub fn run(args: UsersArgs) -> Result<()> {
     Ok(())
 }
 
+/// Signaling for `users` benchmark clients, all from this machine's one address: the
+/// per-address burst of new sessions raised to fit them.
+fn hub_for(users: usize) -> nephele_signaling::HubConfig {
+    let mut hub = nephele_signaling::HubConfig::default();
+    hub.limits.join_burst_per_address = hub.limits.join_burst_per_address.max(2 * users as u32);
+    hub
+}
+
 /// One server, `phases.len()` clients replaying `trace` from those pose offsets, at once;
 /// `lockstep`: every client sends its first pose at the same moment.
 #[allow(clippy::too_many_arguments)]
@@ -220,7 +228,7 @@ async fn session_run(
     let start_at = lockstep.then(|| std::time::Instant::now() + Duration::from_secs(4));
     let cfg = MasterConfig::loopback("bench", CoreConfig { capacity: phases.len().max(1) as u32, render_scale: scale, batching, admission: Admission::Open, ..Default::default() });
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-    let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
+    let server = web::spawn_local_with(listener, Arc::clone(catalog), cfg, hub_for(phases.len())).await?;
     let mut tasks = Vec::new();
     for &phase in phases {
         let mut t = trace.clone();
@@ -257,7 +265,7 @@ async fn overload_run(
 ) -> Result<(Vec<ReplayReport>, Vec<String>)> {
     let cfg = MasterConfig::loopback("bench", CoreConfig { capacity: offered as u32, render_scale: scale, batching: true, admission: Admission::Load, ..Default::default() });
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-    let server = web::spawn_local(listener, Arc::clone(catalog), cfg).await?;
+    let server = web::spawn_local_with(listener, Arc::clone(catalog), cfg, hub_for(offered)).await?;
     let mut tasks = Vec::new();
     for k in 0..offered {
         let mut t = trace.clone();

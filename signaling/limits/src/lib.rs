@@ -166,8 +166,11 @@ pub const MAX_QUEUED_TASKS_PER_WORKER: usize = 2;
 /// well-behaved viewer keeps streaming.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ConnLimits {
-    /// Open connections at once; more are closed as they arrive. Below the usual 1024
-    /// file-descriptor limit, which the media sockets and assets share.
+    /// Open connections at once. At the cap a newcomer takes the place of the oldest
+    /// connection that holds no role (not a master, not a client in a session), so idle
+    /// sockets cannot lock anyone out; when every one holds a role, newcomers are closed as
+    /// they arrive. Below the usual 1024 file-descriptor limit, which the media sockets and
+    /// assets share.
     pub max_connections: usize,
     /// Open connections at once from one IP address.
     pub max_connections_per_address: usize,
@@ -183,6 +186,11 @@ pub struct ConnLimits {
     /// Sessions from one IP address that are paired but whose video has not connected yet;
     /// more joins get `rate_limited` (a join that never connects held a slot for 30 s).
     pub max_pending_joins_per_address: usize,
+    /// New sessions from one IP address: a burst of this many…
+    pub join_burst_per_address: u32,
+    /// …then this many per minute (a token bucket; refused joins cost nothing). A join →
+    /// pose → leave loop is throttled to it, not only the joins still connecting.
+    pub joins_per_address_per_minute: u32,
     /// Bytes a websocket reads into (and buffers for writing) at a time, each way; messages
     /// themselves are bounded by [`MAX_SIGNAL_MESSAGE_BYTES`].
     pub ws_buffer_bytes: usize,
@@ -197,6 +205,8 @@ impl Default for ConnLimits {
             hello_timeout_ms: 10_000,
             idle_timeout_ms: 60_000,
             max_pending_joins_per_address: 4,
+            join_burst_per_address: 10,
+            joins_per_address_per_minute: 20,
             ws_buffer_bytes: 16 * 1024,
         }
     }
