@@ -383,6 +383,7 @@ async fn the_stream_survives_loss_jitter_and_a_blackout() {
             s.set_udp_network(UDPNetwork::Muxed(mux.clone()));
             s.set_ip_filter(Box::new(move |ip| ip == root_ip));
         })),
+        source_ip: None,
     };
     let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: FPS, token: None, keep_pixels: false, quilt: None };
     let mut client = StreamClient::connect_with(&opts, &net).await.expect("the client connects to the server in the namespace");

@@ -21,7 +21,7 @@ use nephele_signaling::Mode;
 use tokio_tungstenite::tungstenite::Message;
 
 use crate::{
-    client::{ClientOptions, StreamClient, replay::Trace},
+    client::{ClientNet, ClientOptions, StreamClient, replay::Trace},
     wire::PoseMessage,
 };
 
@@ -74,6 +74,8 @@ struct AttackCounts {
     flood_connections: u64,
     rejoins: u64,
     rejoins_refused: u64,
+    /// Refused rejoins by the reason signaling or the master gave.
+    rejoin_refusals: std::collections::BTreeMap<String, u64>,
     empties: u64,
 }
 
@@ -103,10 +105,15 @@ pub struct AbuseReport {
     pub connections_attempted: usize,
     pub connections_held: usize,
     pub connections_refused_by_server: u64,
+    /// Sockets without a role the server closed to make room for newer ones.
+    pub connections_evicted_by_server: u64,
+    /// Most connections the server had open at once (its `/status`, sampled every 100 ms).
+    pub server_connections_peak: u64,
     pub flood_messages_sent: u64,
     pub flood_connections: u64,
     pub rejoin_cycles: u64,
     pub rejoins_refused: u64,
+    pub rejoin_refusals: std::collections::BTreeMap<String, u64>,
     pub empty_message_cycles: u64,
     pub viewer_errors: Vec<String>,
 }
@@ -140,14 +147,19 @@ pub fn format_report(args: &AbuseArgs, r: &AbuseReport) -> String {
     s.push_str(&format!("| during the attacks | {:.1} ({:.0}% kept; longest gap {:.0} ms) | {:.0} peak |\n", r.fps_during, 100.0 * r.kept(), r.longest_gap_during_ms, r.rss_peak_mb));
     s.push_str(&format!("| after | {:.1} | {:.0} |\n\n", r.fps_after, r.rss_after_mb));
     s.push_str(&format!(
-        "idle connections: {} attempted from {} addresses, {} held open by the server at most, {} closed at accept by the caps\n",
-        r.connections_attempted, args.addresses, r.connections_held, r.connections_refused_by_server
+        "idle connections: {} attempted from {} addresses ({} open at once as the attacker saw it); the server had {} connections open at most, closed {} idle ones to make room for newer ones and {} at accept\n",
+        r.connections_attempted, args.addresses, r.connections_held, r.server_connections_peak, r.connections_evicted_by_server, r.connections_refused_by_server
     ));
     s.push_str(&format!("relay flood: {} ice messages on {} connections (each rate-limited and dropped)\n", r.flood_messages_sent, r.flood_connections));
     s.push_str(&format!(
-        "{} join → pose → leave cycles: {} (and {} joins refused); empty-pose-message sessions: {}\n",
-        args.rejoin_size, r.rejoin_cycles, r.rejoins_refused, r.empty_message_cycles
+        "{} join → pose → leave cycles: {} (and {} joins refused{}); empty-pose-message sessions: {}\n",
+        args.rejoin_size,
+        r.rejoin_cycles,
+        r.rejoins_refused,
+        if r.rejoin_refusals.is_empty() { String::new() } else { format!(": {:?}", r.rejoin_refusals) },
+        r.empty_message_cycles
     ));
+    s.push_str("sources: idle sockets 127.0.1.x…, relay flood 127.0.2.1, join/leave loop 127.0.3.1, empty messages 127.0.4.1, viewer 127.0.0.1\n");
     if !r.viewer_errors.is_empty() {
         s.push_str(&format!("viewer heard: {:?}\n", r.viewer_errors));
     }
@@ -276,9 +288,13 @@ pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseRepor
         .spawn()
         .context("starting the attacker (nice)")?;
     let mut rss_peak_mb = rss_before_mb;
+    let mut connections_peak = 0;
     let give_up = Instant::now() + phase + Duration::from_secs(30);
     while attacker.try_wait()?.is_none() {
         rss_peak_mb = rss_peak_mb.max(server.rss_mb());
+        if let Some(open) = http_get(server.addr, "/status").await.and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok()).and_then(|v| v["connections"].as_u64()) {
+            connections_peak = connections_peak.max(open);
+        }
         if Instant::now() > give_up {
             attacker.kill().ok();
         }
@@ -289,7 +305,8 @@ pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseRepor
     std::io::Read::read_to_string(&mut attacker.stdout.take().expect("piped"), &mut out)?;
     let counts: AttackCounts = serde_json::from_str(out.lines().last().unwrap_or_default()).with_context(|| format!("the attacker said {out:?}"))?;
     let status = http_get(server.addr, "/status").await.unwrap_or_default();
-    let refused = serde_json::from_str::<serde_json::Value>(&status).ok().and_then(|v| v["connections_refused"].as_u64()).unwrap_or(0);
+    let status: serde_json::Value = serde_json::from_str(&status).unwrap_or_default();
+    let (refused, evicted) = (status["connections_refused"].as_u64().unwrap_or(0), status["connections_evicted"].as_u64().unwrap_or(0));
     // Give the server a moment to let go, then the calm phase.
     tokio::time::sleep(Duration::from_secs(2)).await;
     let t3 = Instant::now();
@@ -317,10 +334,13 @@ pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseRepor
         connections_attempted: args.connections,
         connections_held: counts.held,
         connections_refused_by_server: refused,
+        connections_evicted_by_server: evicted,
+        server_connections_peak: connections_peak,
         flood_messages_sent: counts.flood_sent,
         flood_connections: counts.flood_connections,
         rejoin_cycles: counts.rejoins,
         rejoins_refused: counts.rejoins_refused,
+        rejoin_refusals: counts.rejoin_refusals,
         empty_message_cycles: counts.empties,
         viewer_errors,
     })
@@ -340,6 +360,7 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
     };
     let (flood_sent, flood_conns, rejoins, empties) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
     let rejoins_refused = Arc::new(AtomicU64::new(0));
+    let refusals = Arc::new(std::sync::Mutex::new(std::collections::BTreeMap::new()));
     if on(Attack::Flood) {
         let (stop, url, sent, conns) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&flood_sent), Arc::clone(&flood_conns));
         tasks.push(tokio::spawn(async move {
@@ -351,13 +372,17 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
     }
     if on(Attack::Rejoin) {
         let (rw, rh) = crate::assets::parse_size(&args.rejoin_size)?;
-        let (stop, url, count, refused) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&rejoins), Arc::clone(&rejoins_refused));
+        let (stop, url, count, refused, why) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&rejoins), Arc::clone(&rejoins_refused), Arc::clone(&refusals));
         tasks.push(tokio::spawn(async move {
             while !stop.load(Ordering::Relaxed) {
-                let Ok(c) = StreamClient::connect(&opts(&url, rw, rh, 25)).await else {
-                    refused.fetch_add(1, Ordering::Relaxed);
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                    continue;
+                let c = match StreamClient::connect_with(&opts(&url, rw, rh, 25), &from(REJOIN_SOURCE)).await {
+                    Ok(c) => c,
+                    Err(e) => {
+                        refused.fetch_add(1, Ordering::Relaxed);
+                        *why.lock().expect("refusals").entry(refusal_reason(&format!("{e:#}"))).or_insert(0) += 1;
+                        tokio::time::sleep(Duration::from_millis(100)).await;
+                        continue;
+                    }
                 };
                 {
                     let _ = c.send_pose(&pose(1, rw, rh)).await;
@@ -372,7 +397,7 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
         let (stop, url, count) = (Arc::clone(&stop), url.to_owned(), Arc::clone(&empties));
         tasks.push(tokio::spawn(async move {
             while !stop.load(Ordering::Relaxed) {
-                if let Ok(c) = StreamClient::connect(&opts(&url, 160, 120, 25)).await {
+                if let Ok(c) = StreamClient::connect_with(&opts(&url, 160, 120, 25), &from(EMPTY_SOURCE)).await {
                     let _ = c.send_bytes(Bytes::new()).await;
                     tokio::time::sleep(Duration::from_millis(100)).await;
                     c.close().await;
@@ -395,6 +420,7 @@ async fn attack(url: &str, args: &AbuseArgs) -> Result<AttackCounts> {
         flood_connections: flood_conns.load(Ordering::Relaxed),
         rejoins: rejoins.load(Ordering::Relaxed),
         rejoins_refused: rejoins_refused.load(Ordering::Relaxed),
+        rejoin_refusals: refusals.lock().expect("refusals").clone(),
         empties: empties.load(Ordering::Relaxed),
     })
 }
@@ -427,9 +453,30 @@ async fn idle_connections(server: SocketAddr, n: usize, addresses: usize, stop: 
     }
 }
 
+/// Each attack comes from its own loopback address, as separate attackers would (the idle
+/// sockets from 127.0.1.x), so one attack's per-address caps do not throttle another's.
+const FLOOD_SOURCE: IpAddr = IpAddr::V4(Ipv4Addr::new(127, 0, 2, 1));
+const REJOIN_SOURCE: IpAddr = IpAddr::V4(Ipv4Addr::new(127, 0, 3, 1));
+const EMPTY_SOURCE: IpAddr = IpAddr::V4(Ipv4Addr::new(127, 0, 4, 1));
+
+/// A client's network with its signaling websocket from `source`.
+fn from(source: IpAddr) -> ClientNet {
+    ClientNet { source_ip: Some(source), ..ClientNet::default() }
+}
+
+/// The error code in a refused join's error text (`NoCapacity`, `Rejected`, …).
+fn refusal_reason(error: &str) -> String {
+    match error.split_once("refused the join (") {
+        Some((_, rest)) => rest.split(')').next().unwrap_or("?").to_string(),
+        None if error.contains("refused") || error.contains("rejected") => "master refused".into(),
+        None => error.split(':').next().unwrap_or("?").trim().to_string(),
+    }
+}
+
 /// One connection that joins and then sends ICE candidates as fast as it can.
 async fn relay_flood(url: &str, sent: &AtomicU64) {
-    let Ok((mut ws, _)) = tokio_tungstenite::connect_async(url).await else {
+    let ws = async { tokio_tungstenite::client_async(url, crate::client::connect_from(FLOOD_SOURCE, url).await.ok()?).await.ok() };
+    let Some((mut ws, _)) = ws.await else {
         tokio::time::sleep(Duration::from_millis(200)).await;
         return;
     };

@@ -55,6 +55,9 @@ pub struct ClientNet {
     /// socket through `SettingEngine::set_udp_network`).
     #[allow(clippy::type_complexity)]
     pub settings: Option<Arc<dyn Fn(&mut SettingEngine) + Send + Sync>>,
+    /// The signaling websocket's source address (tests and `bench abuse`: clients from
+    /// different loopback addresses, 127.0.0.0/8); `None`: the system's choice.
+    pub source_ip: Option<std::net::IpAddr>,
 }
 
 /// What to ask signaling for.
@@ -133,7 +136,11 @@ impl StreamClient {
     }
 
     async fn connect_inner(opts: &ClientOptions, net: &ClientNet) -> Result<Self> {
-        let (ws, _) = tokio_tungstenite::connect_async(&opts.signal_url).await.with_context(|| format!("connecting to {}", opts.signal_url))?;
+        let (ws, _) = match net.source_ip {
+            None => tokio_tungstenite::connect_async(&opts.signal_url).await,
+            Some(ip) => tokio_tungstenite::client_async(&opts.signal_url, tokio_tungstenite::MaybeTlsStream::Plain(connect_from(ip, &opts.signal_url).await?)).await,
+        }
+        .with_context(|| format!("connecting to {}", opts.signal_url))?;
         let (mut ws_tx, mut ws_rx) = ws.split();
         let join = ToSignal::Join {
             scene: opts.scene.clone(),
@@ -380,6 +387,19 @@ impl Drop for StreamClient {
             });
         }
     }
+}
+
+/// A TCP connection to the host of the `ws://` URL `url`, from the address `source`.
+pub(crate) async fn connect_from(source: std::net::IpAddr, url: &str) -> Result<tokio::net::TcpStream> {
+    use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+    let request = url.into_client_request().with_context(|| format!("not a websocket URL: {url}"))?;
+    let uri = request.uri();
+    anyhow::ensure!(uri.scheme_str() == Some("ws"), "a source address needs a ws:// URL, not {url}");
+    let host = uri.host().context("the URL has no host")?.trim_matches(['[', ']']);
+    let target = tokio::net::lookup_host((host, uri.port_u16().unwrap_or(80))).await?.next().with_context(|| format!("{host} has no address"))?;
+    let socket = if target.is_ipv4() { tokio::net::TcpSocket::new_v4()? } else { tokio::net::TcpSocket::new_v6()? };
+    socket.bind(std::net::SocketAddr::new(source, 0)).with_context(|| format!("binding to {source}"))?;
+    Ok(socket.connect(target).await?)
 }
 
 async fn next_signal<S>(rx: &mut S) -> Result<ToClient>
