@@ -133,6 +133,10 @@ async fn a_viewer_keeps_streaming_through_four_attacks_at_once() {
     // room by closing idle sockets rather than turning newcomers away.
     let cap = nephele_limits_cap() as u64;
     assert!(report.server_connections_peak > 0 && report.server_connections_peak <= cap, "the server had {} connections open at once, the cap is {cap}", report.server_connections_peak);
-    assert!(report.connections_evicted_by_server > 0, "no idle socket was closed to make room: {report:?}");
+    // (Eviction itself is tested exactly in `signaling/tests/ws.rs`; here only once the
+    // low-priority attacker has filled the cap.)
+    if report.server_connections_peak >= cap {
+        assert!(report.connections_evicted_by_server > 0, "the cap was reached but no idle socket was closed to make room: {report:?}");
+    }
     assert!(report.rejoin_cycles >= 1 && report.empty_message_cycles >= 1 && report.flood_connections >= 1, "an attack did not run: {report:?}");
 }
