@@ -176,13 +176,22 @@ pub fn spawn_worker(nats: &NatsServer, id: &str, farm: &str, scenes: &[String]) 
     for s in scenes {
         cmd.args(["--scene", s]);
     }
-    let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::null()).spawn().expect("starting nephele worker");
+    let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().expect("starting nephele worker");
     let mut out = BufReader::new(child.stdout.take().unwrap());
+    let mut err = child.stderr.take().unwrap();
     let mut line = String::new();
     out.read_line(&mut line).unwrap();
-    assert!(line.contains(" serves "), "worker {id} printed {line:?}");
+    if !line.contains(" serves ") {
+        // Say why: the worker's own words (it has exited, or is stopped now).
+        let _ = child.kill();
+        let status = child.wait();
+        let mut why = String::new();
+        let _ = std::io::Read::read_to_string(&mut err, &mut why);
+        panic!("worker {id} printed {line:?} ({status:?}); its stderr:\n{why}");
+    }
     // Keep reading, so the worker never writes into a closed pipe.
     std::thread::spawn(move || std::io::copy(&mut out, &mut std::io::sink()));
+    std::thread::spawn(move || std::io::copy(&mut err, &mut std::io::sink()));
     Reap(child)
 }
 
