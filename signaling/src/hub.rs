@@ -345,14 +345,14 @@ impl Hub {
         })
     }
 
-    /// `conn` is gone: its master hears `leave` (unless the session's video is connected:
-    /// the stream is peer to peer and belongs to the master now, which ends it when the peer
-    /// connection closes), or its clients hear `master_lost`.
     /// Whether `conn` holds a role: a registered master, or a client paired in a session.
     pub fn holds_role(&self, conn: ConnId) -> bool {
         matches!(self.peers.get(&conn), Some(Peer::Master(_) | Peer::Client { session: Some(_) }))
     }
 
+    /// `conn` is gone: its master hears `leave` (unless the session's video is connected:
+    /// the stream is peer to peer and belongs to the master now, which ends it when the peer
+    /// connection closes), or its clients hear `master_lost`.
     pub fn disconnect(&mut self, conn: ConnId, _now: Instant) -> Vec<Outgoing> {
         self.allowance.remove(&conn);
         self.addresses.remove(&conn);
@@ -375,8 +375,7 @@ impl Hub {
 
     /// Refills `address`'s new-session allowance; an error if it has no whole session left.
     fn refill_joins(&mut self, address: IpAddr, now: Instant) -> Result<(), SignalError> {
-        let limits = &self.cfg.limits;
-        let (burst, per_min) = (limits.join_burst_per_address.max(1), limits.joins_per_address_per_minute.max(1));
+        let (burst, per_min) = self.join_bucket();
         let per_s = f64::from(per_min) / 60.0;
         let (tokens, last) = self.join_allowance.entry(address).or_insert((f64::from(burst), now));
         *tokens = (*tokens + now.saturating_duration_since(*last).as_secs_f64() * per_s).min(f64::from(burst));
@@ -388,11 +387,17 @@ impl Hub {
         }
     }
 
+    /// The new-session bucket per address: (burst, sessions per minute), each at least 1.
+    fn join_bucket(&self) -> (u32, u32) {
+        let limits = &self.cfg.limits;
+        (limits.join_burst_per_address.max(1), limits.joins_per_address_per_minute.max(1))
+    }
+
     /// Drop masters silent for longer than `heartbeat_timeout`, and forget addresses whose
     /// new-session allowance is full again.
     pub fn tick(&mut self, now: Instant) -> Vec<Outgoing> {
-        let limits = &self.cfg.limits;
-        let refill = Duration::from_secs_f64(f64::from(limits.join_burst_per_address.max(1)) * 60.0 / f64::from(limits.joins_per_address_per_minute.max(1)));
+        let (burst, per_min) = self.join_bucket();
+        let refill = Duration::from_secs_f64(f64::from(burst) * 60.0 / f64::from(per_min));
         self.join_allowance.retain(|_, (_, last)| now.saturating_duration_since(*last) < refill);
         let timeout = self.cfg.heartbeat_timeout;
         let stale: Vec<(ConnId, String)> = self

@@ -4,8 +4,8 @@
 //! headers within `header_timeout_ms` (hyper's header timer, which also ends idle
 //! keep-alive connections). Websockets upgrade on the same connection and keep counting
 //! against the caps until they close. At the total cap, the oldest connection that holds no
-//! role (no master, no session) is closed to let a newcomer in ([`ConnPermit`]). Requests carry [`ConnectInfo`] of the peer and an
-//! `Arc<ConnPermit>` (its place under the caps).
+//! role (no master, no session) is closed to let a newcomer in ([`ConnPermit`]). Requests
+//! carry [`ConnectInfo`] of the peer and an `Arc<ConnPermit>` (its place under the caps).
 
 use std::collections::{HashMap, VecDeque};
 use std::net::{IpAddr, SocketAddr};

@@ -6,8 +6,8 @@
 //! churn the resident set stays near its peak although nothing is live: the soak test
 //! measured 87 MB → 151 MB after 500 sessions. So once sessions have ended, the master calls
 //! `malloc_trim(0)` (which also releases free pages inside each arena), at most once per
-//! [`TRIM_EVERY`], on the blocking pool: the soak then settles at its working set (~45 MB,
-//! 0.94× its baseline after 200 warm-up sessions; `tests/soak.rs`). (Tried:
+//! [`TRIM_EVERY`], on the blocking pool: the soak then settles at its working set (~45 MB;
+//! 0.94–1.22× its baseline after 200 warm-up sessions, run to run; `tests/soak.rs`). (Tried:
 //! mimalloc stays flat over the churn but peaks at 450 MB while loading the default scenes,
 //! against 270 MB here; two arenas instead of glibc's default did not help.) Other
 //! allocators and platforms: nothing to do.
