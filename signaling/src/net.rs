@@ -78,7 +78,9 @@ impl ConnGate {
         *c.per_address.entry(ip).or_insert(0) += 1;
         let permit = Arc::new(ConnPermit { gate: self.clone(), ip, evictable: AtomicBool::new(true), evicted: AtomicBool::new(false), evict: Notify::new() });
         c.open.push_back(Arc::downgrade(&permit));
-        if c.open.len() > 2 * self.limits.max_connections.max(16) {
+        // A closed connection's entry keeps its permit's allocation alive: prune once the dead
+        // outnumber the open (amortised O(1) per connection; memory follows open connections).
+        if c.open.len() > 2 * c.total + 64 {
             c.open.retain(|w| w.strong_count() > 0);
         }
         Some(permit)
@@ -185,5 +187,23 @@ pub async fn serve_limited(listener: TcpListener, app: Router, gate: ConnGate) -
             // the permit (from the request's extensions) until the socket closes.
             drop(permit);
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn closed_connections_leave_no_entries_behind() {
+        let gate = ConnGate::new(ConnLimits::default());
+        let ip: IpAddr = [127, 0, 0, 1].into();
+        let resident: Vec<_> = (0..10).map(|_| gate.admit(ip).expect("room")).collect();
+        for _ in 0..10_000 {
+            drop(gate.admit(ip).expect("room"));
+        }
+        let c = gate.lock();
+        assert_eq!(c.total, resident.len());
+        assert!(c.open.len() <= 2 * c.total + 64, "{} entries for {} open connections", c.open.len(), c.total);
     }
 }

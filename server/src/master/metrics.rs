@@ -48,6 +48,7 @@ pub struct MasterMetrics {
     pub frames_failed: Counter,
     pub history_hits: Counter,
     pub farm_rays_per_s: GaugeF64,
+    pub heap_in_use_bytes: Gauge,
 }
 
 impl Default for MasterMetrics {
@@ -77,6 +78,7 @@ impl MasterMetrics {
             frames_failed: Counter::default(),
             history_hits: Counter::default(),
             farm_rays_per_s: GaugeF64::default(),
+            heap_in_use_bytes: Gauge::default(),
             registry: Registry::default(),
         };
         registry.register("users", "Admitted users (sessions)", m.users.clone());
@@ -96,11 +98,15 @@ impl MasterMetrics {
         registry.register("frames_failed", "Frames that failed to render or encode", m.frames_failed.clone());
         registry.register("history_hits", "Frames served from the history table or a user's own last frame", m.history_hits.clone());
         registry.register("farm_rays_per_second", "Measured render throughput of the farm, rays per second", m.farm_rays_per_s.clone());
+        registry.register("heap_in_use_bytes", "Bytes the process's allocator has handed out and not had back (live heap), read when scraped", m.heap_in_use_bytes.clone());
         Self { registry, ..m }
     }
 
     /// The metrics as OpenMetrics text (what Prometheus scrapes).
     pub fn encode(&self) -> String {
+        if let Some(bytes) = super::memory::heap_in_use() {
+            self.heap_in_use_bytes.set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        }
         let mut out = String::new();
         // Writing into a String cannot fail.
         encode(&mut out, &self.registry).expect("metrics encode into a String");
