@@ -13,7 +13,7 @@
 //! - [`use_one_arena`]: the `nephele` binary asks for a single arena before any thread
 //!   starts. With trimming alone the settled size after 500 sessions was 0.94–1.22× of its
 //!   baseline run to run (which arenas a process happens to grow, and where long-lived
-//!   objects land in them); with one arena, 1.040, 1.041 and 1.043 in three runs, baseline
+//!   objects land in them); with one arena, 1.040–1.044 in six runs, baseline
 //!   36 MB instead of 41–47, peak 104 MB instead of 139 (`tests/soak.rs`). Rendering and
 //!   encoding allocate little per frame and each thread keeps its small-chunk cache, so the
 //!   shared lock costs nothing measurable here (`bench render`, `bench stream`: within
