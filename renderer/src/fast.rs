@@ -6,8 +6,9 @@
 //!   and the rest march only the ray interval their footprints allow ([`Footprints`]).
 //! - **Samples in packets along the ray.** Inside that interval the samples of the
 //!   reference's lattice `t_k = t0 + (k+½)δ` are evaluated [`BATCH`] at a time (AVX2 gathers
-//!   for the trilinear corners, a vector `exp`), each reading the brick of the cell it lies
-//!   in (σ = 0 where the cell is not live), then taken front to back by the same rule and
+//!   for the trilinear corners — the density's f16 values read two corners at a time — and
+//!   a vector `exp`), each reading the brick of the cell it lies in (σ = 0 where the cell is
+//!   not live), then the samples with σ ≠ 0 are taken front to back by the same rule and
 //!   stopping tests ([`Scan`]). σ at each sample is the reference's to the bit; the only
 //!   difference is which of two touching cells a sample exactly on their shared face belongs
 //!   to (the reference follows its DDA, this the sample's position), measured against the
@@ -17,9 +18,9 @@
 //!   register-blocked matrix products ([`MlpKernel::forward_tile`], AVX-512 or AVX2 + FMA
 //!   at run time). Fused multiply-adds round differently from the reference's separate ones
 //!   (output differences ~1e-6).
-//! - **Hashing without division, misses overlapped.** The perfect spatial hash's `mod m̄`
-//!   and `mod r̄` become table lookups, and a tile's 128 corner slots are prefetched before
-//!   they are read.
+//! - **The hash laid out by position.** The perfect spatial hash's stored vertices are
+//!   rearranged into bricks of the vertex grid ([`PshBricks`]): a query's 8 corners are a
+//!   few neighbouring reads instead of 8 hashes to scattered slots, with the same features.
 
 use std::{sync::Arc, time::Instant};
 
@@ -53,7 +54,7 @@ impl Backend for FastCpuBackend {
     fn prepare(&self, asset: Arc<Asset>) -> Result<Box<dyn PreparedAsset>, RenderError> {
         let net = asset.mlp.kernel();
         let live = LiveCells::new(&asset.density);
-        let hash = HashTables::new(&asset.psh);
+        let hash = PshBricks::new(&asset.psh);
         let diffuse = DiffuseBytes::new(&asset.diffuse);
         Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse }))
     }
@@ -63,7 +64,7 @@ struct FastPrepared {
     asset: Arc<Asset>,
     net: MlpKernel,
     live: LiveCells,
-    hash: HashTables,
+    hash: PshBricks,
     diffuse: Option<DiffuseBytes>,
 }
 
@@ -93,6 +94,10 @@ struct LiveCells {
     /// `b³`, x fastest: the brick, or −1.
     index: Vec<i32>,
     cells: Vec<UVec3>,
+    /// The density values as the f16 bits they are stored as (`None` if some value is not
+    /// an f16, as in cubes built in memory): half the bytes, and the two corners of a
+    /// trilinear sample that differ in x are one 32-bit read.
+    values_f16: Option<Vec<u16>>,
 }
 
 impl LiveCells {
@@ -109,7 +114,11 @@ impl LiveCells {
                 *brick = -1;
             }
         }
-        Self { index, cells }
+        let values_f16 = (d.channels == 1)
+            .then(|| d.values.iter().map(|&v| half::f16::from_f32(v)).collect::<Vec<_>>())
+            .filter(|h| h.iter().zip(&d.values).all(|(h, v)| h.to_f32().to_bits() == v.to_bits()))
+            .map(|h| h.into_iter().map(half::f16::to_bits).collect());
+        Self { index, cells, values_f16 }
     }
 }
 
@@ -124,53 +133,98 @@ struct Scan {
 }
 
 impl Scan {
-    /// Takes lattice samples `k0..k0 + n` with densities `sigma` and `e = e^(−σδ)`.
+    /// Takes lattice samples `k0..k0 + n` whose `e = e^(−σδ)` are given, visiting only the
+    /// lanes set in `nonzero` (σ ≠ 0): a sample with σ = 0 has α = 0 and changes nothing (and
+    /// the reference's tracker ignores w = 0). The state lives in locals for the loop.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn take<T: Tracker>(&mut self, k0: i32, n: usize, sigma: &[f32; BATCH], e: &[f32; BATCH], t0: f32, step: f32, s: &RenderSettings, tracker: &mut T) {
-        for l in 0..n {
-            // σ = 0 (no live cell, or empty there): α = 0, nothing changes, and the
-            // reference's tracker ignores w = 0.
-            if sigma[l] == 0.0 {
-                continue;
-            }
-            self.samples += 1;
+    fn take<T: Tracker + Copy>(&mut self, k0: i32, n: usize, nonzero: u32, e: &[f32; BATCH], t0: f32, step: f32, s: &RenderSettings, tracker: &mut T) {
+        let (mut transmittance, mut w_max, mut t_hit, mut samples) = (self.transmittance, self.w_max, self.t_hit, self.samples);
+        let mut tr = *tracker;
+        let mut lanes = nonzero & (u32::MAX >> (32 - n as u32));
+        while lanes != 0 {
+            let l = lanes.trailing_zeros() as usize;
+            lanes &= lanes - 1;
+            samples += 1;
             let t = t0 + ((k0 + l as i32) as f32 + 0.5) * step;
             let alpha = 1.0 - e[l];
-            let w = self.transmittance * alpha;
-            let new_max = w > self.w_max;
+            let w = transmittance * alpha;
+            let new_max = w > w_max;
             if new_max {
-                self.w_max = w;
-                self.t_hit = t;
+                (w_max, t_hit) = (w, t);
             }
-            tracker.sample(t, w, new_max);
-            self.transmittance *= 1.0 - alpha;
-            if self.transmittance < s.stop_ratio * self.w_max || self.transmittance < s.early_stop {
+            tr.sample(t, w, new_max);
+            transmittance *= 1.0 - alpha;
+            if transmittance < s.stop_ratio * w_max || transmittance < s.early_stop {
                 self.done = true;
-                return;
+                break;
             }
         }
+        (self.transmittance, self.w_max, self.t_hit, self.samples) = (transmittance, w_max, t_hit, samples);
+        *tracker = tr;
     }
 }
 
-/// `x mod m̄` and `x mod r̄` for every coordinate the hash can see.
-struct HashTables {
-    mod_table: Vec<u16>,
-    mod_offset: Vec<u16>,
+/// The perfect spatial hash's stored vertices rearranged for lookups by position: the
+/// vertex grid cut into bricks of [`PshBricks::BRICK`]³ cells, each brick a table of its
+/// `(BRICK + 1)³` corner vertices' ids (or [`PshBricks::ABSENT`]), and the vertices' features
+/// in brick order, so that a query's 8 corners are a few neighbouring reads instead of 8
+/// hashes (offset table, key check, scattered slots). A vertex has an id exactly when the
+/// hash stores it, so features come out as [`SpatialHash::encode`]'s.
+struct PshBricks {
+    /// Bricks per axis.
+    grid: usize,
+    /// `grid³`, x fastest: the brick's table, or −1 (no stored vertex among its corners).
+    index: Vec<i32>,
+    /// Per brick `(BRICK + 1)³` vertex ids, x fastest.
+    tables: Vec<u32>,
+    /// `vertices × features`.
+    values: Vec<f32>,
 }
 
-impl HashTables {
+impl PshBricks {
+    const BRICK: u32 = 4;
+    const EDGE: usize = Self::BRICK as usize + 1;
+    const ABSENT: u32 = u32::MAX;
+
     fn new(h: &SpatialHash) -> Self {
-        // Coordinates are ≤ MAX_COORD; `wrap(p) + Φ` is < 2 m̄.
-        let span = 2 * (psh::MAX_COORD as usize + 1);
-        let m = h.table_edge.max(1) as usize;
-        let r = h.offset_edge.max(1) as usize;
-        Self { mod_table: (0..span).map(|x| (x % m) as u16).collect(), mod_offset: (0..span).map(|x| (x % r) as u16).collect() }
+        let b = Self::BRICK;
+        let grid = h.grid.div_ceil(b) as usize;
+        let nf = h.features as usize;
+        // Stored vertices in brick order (the brick of the cell they are the low corner of).
+        let mut stored: Vec<(UVec3, usize)> = h.keys.iter().enumerate().filter(|(_, k)| **k != psh::EMPTY_KEY).map(|(slot, &k)| (psh::unpack(k), slot)).collect();
+        let order = |q: UVec3| {
+            let (c, l) = (q.min(UVec3::splat(h.grid.max(1) - 1)) / b, q % b);
+            (c.z, c.y, c.x, l.z, l.y, l.x)
+        };
+        stored.sort_unstable_by_key(|(q, _)| order(*q));
+        let mut index = vec![-1i32; grid.pow(3)];
+        let mut tables = Vec::new();
+        let mut values = Vec::with_capacity(stored.len() * nf);
+        for (id, (q, slot)) in stored.iter().enumerate() {
+            values.extend_from_slice(&h.values[slot * nf..(slot + 1) * nf]);
+            // Every brick whose corners include q: along each axis the brick q lies in and,
+            // on a brick face, the one below.
+            let along = |a: u32| [Some(a / b), (a.is_multiple_of(b) && a > 0).then(|| a / b - 1)].map(|c| c.filter(|&c| (c as usize) < grid));
+            for z in along(q.z).into_iter().flatten() {
+                for y in along(q.y).into_iter().flatten() {
+                    for x in along(q.x).into_iter().flatten() {
+                        let at = x as usize + grid * (y as usize + grid * z as usize);
+                        if index[at] < 0 {
+                            index[at] = (tables.len() / Self::EDGE.pow(3)) as i32;
+                            tables.resize(tables.len() + Self::EDGE.pow(3), Self::ABSENT);
+                        }
+                        let l = *q - UVec3::new(x, y, z) * b;
+                        tables[index[at] as usize * Self::EDGE.pow(3) + l.x as usize + Self::EDGE * (l.y as usize + Self::EDGE * l.z as usize)] = id as u32;
+                    }
+                }
+            }
+        }
+        Self { grid, index, tables, values }
     }
 
-    /// The 8 corners of `p`'s cell as (slot the hash sends each to, its packed key, its
-    /// trilinear weight), in [`SpatialHash::encode`]'s order; corners outside the key range
-    /// get a key no slot holds.
+    /// The 8 corners of `p`'s cell (in [`SpatialHash::encode`]'s order and with its
+    /// weights): each one's vertex id, or [`Self::ABSENT`].
     #[inline(always)]
     fn corners(&self, h: &SpatialHash, p: Vec3) -> Corners {
         let n = h.grid as f32;
@@ -178,37 +232,32 @@ impl HashTables {
         let base = g.floor().clamp(Vec3::ZERO, Vec3::splat(n - 1.0));
         let f = (g - base).clamp(Vec3::ZERO, Vec3::ONE);
         let base = base.as_uvec3();
-        let (m, r) = (h.table_edge as usize, h.offset_edge as usize);
-        let (mt, mo) = (&self.mod_table, &self.mod_offset);
-        let mut out = Corners { slot: [0; 8], key: [psh::EMPTY_KEY; 8], weight: [0.0; 8] };
+        let mut out = Corners { id: [Self::ABSENT; 8], weight: [0.0; 8] };
         for corner in 0..8u32 {
             let d = UVec3::new(corner & 1, (corner >> 1) & 1, corner >> 2);
-            let c = corner as usize;
-            out.weight[c] = if d.x == 1 { f.x } else { 1.0 - f.x } * if d.y == 1 { f.y } else { 1.0 - f.y } * if d.z == 1 { f.z } else { 1.0 - f.z };
-            let q = base + d;
-            if q.max_element() > psh::MAX_COORD {
-                continue;
+            out.weight[corner as usize] = if d.x == 1 { f.x } else { 1.0 - f.x } * if d.y == 1 { f.y } else { 1.0 - f.y } * if d.z == 1 { f.z } else { 1.0 - f.z };
+        }
+        let (c, l) = (base / Self::BRICK, base % Self::BRICK);
+        let brick = self.index[c.x as usize + self.grid * (c.y as usize + self.grid * c.z as usize)];
+        if brick >= 0 {
+            let table = &self.tables[brick as usize * Self::EDGE.pow(3)..][..Self::EDGE.pow(3)];
+            for corner in 0..8usize {
+                let q = l + UVec3::new(corner as u32 & 1, (corner as u32 >> 1) & 1, corner as u32 >> 2);
+                out.id[corner] = table[q.x as usize + Self::EDGE * (q.y as usize + Self::EDGE * q.z as usize)];
             }
-            let (x, y, z) = (q.x as usize, q.y as usize, q.z as usize);
-            let phi = psh::unpack(h.offsets[mo[x] as usize + r * (mo[y] as usize + r * mo[z] as usize)]);
-            let wx = mt[mt[x] as usize + phi.x as usize] as usize;
-            let wy = mt[mt[y] as usize + phi.y as usize] as usize;
-            let wz = mt[mt[z] as usize + phi.z as usize] as usize;
-            out.slot[c] = wx + m * (wy + m * wz);
-            out.key[c] = psh::pack(q);
         }
         out
     }
 
     /// [`SpatialHash::encode`] from [`Self::corners`]: the same terms in the same order.
     #[inline(always)]
-    fn encode(h: &SpatialHash, c: &Corners, out: &mut [f32]) {
+    fn encode(&self, c: &Corners, out: &mut [f32]) {
         out.fill(0.0);
-        let nf = h.features as usize;
+        let nf = out.len();
         for i in 0..8 {
-            if c.key[i] != psh::EMPTY_KEY && h.keys[c.slot[i]] == c.key[i] {
-                let slot = c.slot[i];
-                for (o, v) in out.iter_mut().zip(&h.values[slot * nf..(slot + 1) * nf]) {
+            if c.id[i] != Self::ABSENT {
+                let at = c.id[i] as usize * nf;
+                for (o, v) in out.iter_mut().zip(&self.values[at..at + nf]) {
                     *o += c.weight[i] * v;
                 }
             }
@@ -216,11 +265,10 @@ impl HashTables {
     }
 }
 
-/// A query point's 8 hash corners (see [`HashTables::corners`]).
+/// A query point's 8 hash corners (see [`PshBricks::corners`]).
 #[derive(Clone, Copy)]
 struct Corners {
-    slot: [usize; 8],
-    key: [u32; 8],
+    id: [u32; 8],
     weight: [f32; 8],
 }
 
@@ -333,12 +381,9 @@ impl Footprints {
                     continue;
                 }
                 for y in r.y0.max(y0)..=r.y1.min(y_end - 1) {
-                    let row = ((y - y0) * width) as usize;
-                    for x in r.x0..=r.x1 {
-                        let at = row + x as usize;
-                        b.t_lo[at] = b.t_lo[at].min(r.t_lo);
-                        b.t_hi[at] = b.t_hi[at].max(r.t_hi);
-                    }
+                    let span = ((y - y0) * width + r.x0) as usize..=((y - y0) * width + r.x1) as usize;
+                    b.t_lo[span.clone()].iter_mut().for_each(|t| *t = t.min(r.t_lo));
+                    b.t_hi[span].iter_mut().for_each(|t| *t = t.max(r.t_hi));
                 }
             }
         }
@@ -460,11 +505,11 @@ impl FastPrepared {
         let mut color = vec![Vec3::ZERO; n];
         let mut alpha = vec![0.0f32; n];
         for i in 0..n {
-            let (x, y) = (i as u32 % w, y0 + i as u32 / w);
-            let (o, d) = f.ray(x, y);
             let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
+            // No live cell's footprint covers the pixel: the ray takes no sample (and is not
+            // even made).
+            let (o, d) = if t_lo > t_hi { (Vec3::ZERO, Vec3::ZERO) } else { f.ray(i as u32 % w, y0 + i as u32 / w) };
             let m = if t_lo > t_hi {
-                // No live cell's footprint covers this pixel: the ray takes no sample.
                 MultiHit::default()
             } else if rule.one_hit() {
                 MultiHit::one(self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut ()))
@@ -509,7 +554,7 @@ impl FastPrepared {
         let mut diffuse = [[0.0f32; 4]; TILE];
         let mut encoded = [0.0f32; MAX_INPUT];
         let psh = &asset.psh;
-        let mut corners = [Corners { slot: [0; 8], key: [psh::EMPTY_KEY; 8], weight: [0.0; 8] }; TILE];
+        let mut corners = [Corners { id: [PshBricks::ABSENT; 8], weight: [0.0; 8] }; TILE];
         for tile in queries.chunks(TILE) {
             // The hash sends neighbouring corners to scattered slots: find them all first
             // and prefetch, so the tile's cache misses overlap instead of queueing.
@@ -517,9 +562,8 @@ impl FastPrepared {
             // x86-64-v3 band.)
             for (lane, q) in tile.iter().enumerate() {
                 corners[lane] = self.hash.corners(psh, q.p_hit);
-                for &slot in &corners[lane].slot {
-                    prefetch(&psh.keys, slot);
-                    prefetch(&psh.values, slot * features);
+                for &id in &corners[lane].id {
+                    prefetch(&self.hash.values, id as usize * features);
                 }
             }
             for (lane, q) in tile.iter().enumerate() {
@@ -527,7 +571,7 @@ impl FastPrepared {
                     Some(bytes) => bytes.sample(&asset.diffuse, q.p_hit),
                     None => asset.diffuse.sample::<4>(q.p_hit),
                 };
-                HashTables::encode(psh, &corners[lane], &mut encoded[..features]);
+                self.hash.encode(&corners[lane], &mut encoded[..features]);
                 encoded[features..features + 16].copy_from_slice(&sh4(q.d));
                 encoded[features + 16] = q.alpha_c;
                 for (row, &v) in x.iter_mut().zip(&encoded[..width]) {
@@ -551,14 +595,14 @@ impl FastPrepared {
     /// does in the brick of the cell the sample lies in (0 outside live cells). `V`: with the
     /// AVX2 kernel (only instantiated from the x86-64-v3 band).
     #[inline(always)]
-    fn sigmas<const V: bool>(&self, k0: i32, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH]) {
+    fn sigmas<const V: bool>(&self, k0: i32, n: usize, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH], u32) {
         let density = &self.asset.density;
         #[cfg(target_arch = "x86_64")]
         if V {
             #[allow(unsafe_code)]
             // SAFETY: `V` is true only where the CPU has x86-64-v3: in the band compiled for
             // it (`v3::band_v3`, chosen by `simd::level`) and in a test that checks `level`.
-            return unsafe { v3::sigmas(density, &self.live.index, k0, o, d, t0, step) };
+            return unsafe { v3::sigmas(density, &self.live, k0, n, o, d, t0, step) };
         }
         let mut sigma = [0.0; BATCH];
         let mut e = [1.0; BATCH];
@@ -573,14 +617,15 @@ impl FastPrepared {
                 e[l] = exp_neg(sigma[l] * step);
             }
         }
-        (sigma, e)
+        let nonzero = (0..BATCH).filter(|&l| sigma[l] != 0.0).fold(0, |m, l| m | 1 << l);
+        (sigma, e, nonzero)
     }
 
     /// The reference march ([`crate::model::march_with`]) over the lattice samples inside
     /// `span`, [`BATCH`] at a time (a batch may reach past where the rule stops; the rule
     /// sees the samples one by one, in order).
     #[inline(always)]
-    fn march<const V: bool, T: Tracker>(&self, o: Vec3, d: Vec3, step: f32, span: (f32, f32), s: &RenderSettings, tracker: &mut T) -> MarchHit {
+    fn march<const V: bool, T: Tracker + Copy>(&self, o: Vec3, d: Vec3, step: f32, span: (f32, f32), s: &RenderSettings, tracker: &mut T) -> MarchHit {
         let density = &self.asset.density;
         let mut out = MarchHit::default();
         let Some((t0, t1)) = clip_ray(&density.bounds, o, d) else { return out };
@@ -595,9 +640,9 @@ impl FastPrepared {
         let mut k0 = k_first;
         while k0 < k_end && !scan.done {
             let n = ((k_end - k0) as usize).min(BATCH);
-            let (sigma, e) = self.sigmas::<V>(k0, o, d, t0, step);
-            scan.take(k0, n, &sigma, &e, t0, step, s, tracker);
-            k0 += BATCH as i32;
+            let (_, e, nonzero) = self.sigmas::<V>(k0, n, o, d, t0, step);
+            scan.take(k0, n, nonzero, &e, t0, step, s, tracker);
+            k0 += n as i32;
         }
         out.t_hit = scan.t_hit;
         out.alpha_c = 1.0 - scan.transmittance;
@@ -630,8 +675,10 @@ mod v3 {
     /// operations in the same order as the scalar path (no fused multiply-adds), so
     /// bit-identical, with the cell's brick and the 8 trilinear corners gathered.
     #[inline]
+    #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    pub(super) fn sigmas(density: &TextureCubes, live: &[i32], k0: i32, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH]) {
+    pub(super) fn sigmas(density: &TextureCubes, cells: &LiveCells, k0: i32, n: usize, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH], u32) {
+        let live = &cells.index;
         use std::arch::x86_64::*;
         let b = density.grid as i32;
         let e = density.brick as i32 + 1;
@@ -641,19 +688,24 @@ mod v3 {
                 && live.len() == (b as usize).pow(3)
                 && density.values.len() == density.brick_count() * corners
                 && density.values.len() < i32::MAX as usize
+                && cells.values_f16.as_ref().is_none_or(|h| h.len() == density.values.len())
         );
+        let pow2 = density.brick.is_power_of_two();
         // (Every entry of `live` is −1 or a brick below `brick_count`, by `LiveCells::new`.)
         let mut sigma = [0.0f32; BATCH];
         let mut out = [1.0f32; BATCH];
+        let mut nonzero = 0u32;
         let r = density.brick as f32;
         let res = density.fine_res() as f32;
         let (min, size) = (density.bounds.min, density.bounds.size());
-        for half in 0..BATCH / 8 {
+        for half in 0..n.div_ceil(8) {
             let at = 8 * half;
             // SAFETY: register arithmetic, and gathers of `live[x + b·(y + b·z)]` with each
             // coordinate clamped to 0..b, then of `values[brick · corners + x + e·(y + e·z)]`
             // with 0 ≤ brick < bricks (−1 replaced by 0, and masked out after) and each
-            // coordinate in 0..=r; stores into `[f32; BATCH]` at `at ≤ BATCH − 8`.
+            // coordinate in 0..=r — or 32-bit reads of `values_f16` at the same index with
+            // x ≤ r − 1, so both u16s lie in the brick's row; stores into `[f32; BATCH]` at
+            // `at ≤ BATCH − 8`.
             unsafe {
                 let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
                 let k = _mm256_add_epi32(_mm256_set1_epi32(k0 + at as i32), lane);
@@ -665,7 +717,9 @@ mod v3 {
                 };
                 let (gx, gy, gz) = (g(0, o.x, d.x), g(1, o.y, d.y), g(2, o.z, d.z));
                 // The cell: trunc(g / r) clamped to the grid (as `TextureCubes::sample`).
-                let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(_mm256_div_ps(g, _mm256_set1_ps(r)))), _mm256_setzero_ps()), _mm256_set1_ps((b - 1) as f32));
+                // (g · 1/r is g / r to the bit when r is a power of two.)
+                let over_r = |g: __m256| if pow2 { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
+                let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), _mm256_setzero_ps()), _mm256_set1_ps((b - 1) as f32));
                 let (cx, cy, cz) = (cell(gx), cell(gy), cell(gz));
                 let bi = _mm256_set1_epi32(b);
                 let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(cx), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(cy), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(cz)))));
@@ -690,19 +744,46 @@ mod v3 {
                 let one = _mm256_set1_ps(1.0);
                 let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
                 let mut acc = _mm256_setzero_ps();
-                for corner in 0..8i32 {
-                    let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
-                    let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
-                    let v = _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz))));
-                    acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
+                if let Some(h) = &cells.values_f16 {
+                    // Corners (0, y, z) and (1, y, z) as one 32-bit read of two f16s: split,
+                    // convert, and add in the same corner order as below.
+                    for pair in 0..4i32 {
+                        let (dy, dz) = (pair & 1, pair >> 1);
+                        let bits = _mm256_i32gather_epi32::<2>(h.as_ptr().cast(), _mm256_add_epi32(idx0, _mm256_set1_epi32(e * (dy + e * dz))));
+                        let (v0, v1) = f16_pairs(bits);
+                        let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                        acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
+                        acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
+                    }
+                } else {
+                    for corner in 0..8i32 {
+                        let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                        let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                        let v = _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz))));
+                        acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
+                    }
                 }
                 let acc = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
+                nonzero |= (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(acc, _mm256_setzero_ps())) as u32) << at;
                 _mm256_storeu_ps(sigma.as_mut_ptr().add(at), acc);
                 let ex = _mm256_blendv_ps(one, exp_neg8(_mm256_mul_ps(acc, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
                 _mm256_storeu_ps(out.as_mut_ptr().add(at), ex);
             }
         }
-        (sigma, out)
+        (sigma, out, nonzero)
+    }
+
+    /// The low and high f16 of each 32-bit lane, as f32.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn f16_pairs(bits: std::arch::x86_64::__m256i) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256) {
+        use std::arch::x86_64::*;
+        let lo = _mm256_and_si256(bits, _mm256_set1_epi32(0xffff));
+        let hi = _mm256_srli_epi32::<16>(bits);
+        // 16-bit packing works within 128-bit halves: [lo 0–3, hi 0–3 | lo 4–7, hi 4–7],
+        // then reorder the 64-bit quarters to [lo 0–7 | hi 0–7].
+        let packed = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi32(lo, hi));
+        (_mm256_cvtph_ps(_mm256_castsi256_si128(packed)), _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(packed)))
     }
 
     /// [`exp_neg`] on 8 lanes, the same operations in the same order (bit-identical).
@@ -788,8 +869,46 @@ mod tests {
             eprintln!("no AVX2 on this CPU: only the portable path exists");
             return;
         }
-        let asset = Arc::new(crate::procedural::generate(&crate::procedural::ProceduralConfig::small(crate::procedural::Scene::Trio)).unwrap());
-        let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: HashTables::new(&asset.psh), diffuse: None, asset: asset.clone() };
+        let built = crate::procedural::generate(&crate::procedural::ProceduralConfig::small(crate::procedural::Scene::Trio)).unwrap();
+        // As built in memory (f32 density) and as stored (f16: the paired reads).
+        let mut stored = built.clone();
+        stored.density = stored.density.stored_as(crate::cubes::CubeStorage::F16);
+        for (asset, f16) in [(built, false), (stored, true)] {
+            let asset = Arc::new(asset);
+            let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: PshBricks::new(&asset.psh), diffuse: None, asset: asset.clone() };
+            if f16 {
+                assert!(prepared.live.values_f16.is_some());
+            }
+            same_sigmas(&prepared);
+        }
+    }
+
+    #[test]
+    fn psh_bricks_encode_as_the_hash_does() {
+        let asset = crate::procedural::generate(&crate::procedural::ProceduralConfig::small(crate::procedural::Scene::Trio)).unwrap();
+        let h = &asset.psh;
+        let bricks = PshBricks::new(h);
+        let nf = h.features as usize;
+        let mut rng = SmallRng::seed_from_u64(5);
+        let (mut a, mut b) = (vec![0.0; nf], vec![0.0; nf]);
+        let mut nonzero = 0;
+        for i in 0..20_000 {
+            // Anywhere in (and a little outside) the box, and on vertex planes.
+            let mut p = h.bounds.min + (h.bounds.size() * 1.1) * Vec3::new(rng.random(), rng.random(), rng.random()) - 0.05 * h.bounds.size();
+            if i % 4 == 0 {
+                let cell = h.bounds.size() / h.grid as f32;
+                p.x = h.bounds.min.x + cell.x * rng.random_range(0..=h.grid) as f32;
+            }
+            h.encode(p, &mut a);
+            bricks.encode(&bricks.corners(h, p), &mut b);
+            assert_eq!(a, b, "at {p}");
+            nonzero += usize::from(a.iter().any(|v| *v != 0.0));
+        }
+        assert!(nonzero > 1000, "{nonzero} points with features");
+    }
+
+    fn same_sigmas(prepared: &FastPrepared) {
+        let asset = &prepared.asset;
         let mut rng = SmallRng::seed_from_u64(3);
         let step = asset.march.step;
         let mut live_lanes = 0;
@@ -798,10 +917,11 @@ mod tests {
             let d = (-o + Vec3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5))).normalize();
             let Some((t0, t1)) = clip_ray(&asset.density.bounds, o, d) else { continue };
             let k0 = rng.random_range(0..((t1 - t0) / step).max(1.0) as i32);
-            let (s, e) = prepared.sigmas::<false>(k0, o, d, t0, step);
-            let (sv, ev) = prepared.sigmas::<true>(k0, o, d, t0, step);
+            let (s, e, m) = prepared.sigmas::<false>(k0, BATCH, o, d, t0, step);
+            let (sv, ev, mv) = prepared.sigmas::<true>(k0, BATCH, o, d, t0, step);
             assert_eq!(s.map(f32::to_bits), sv.map(f32::to_bits));
             assert_eq!(e.map(f32::to_bits), ev.map(f32::to_bits));
+            assert_eq!(m, mv);
             live_lanes += s.iter().filter(|v| **v != 0.0).count();
         }
         assert!(live_lanes > 1000, "the rays should cross the objects ({live_lanes} live samples)");
