@@ -139,9 +139,8 @@ impl Scan {
     /// the reference's tracker ignores w = 0). The state lives in locals for the loop.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn take<T: Tracker + Copy>(&mut self, k0: i32, n: usize, nonzero: u32, e: &[f32; BATCH], t0: f32, step: f32, s: &RenderSettings, tracker: &mut T) {
+    fn take<T: Tracker>(&mut self, k0: i32, n: usize, nonzero: u32, e: &[f32; BATCH], t0: f32, step: f32, s: &RenderSettings, tracker: &mut T) {
         let (mut transmittance, mut w_max, mut t_hit, mut samples) = (self.transmittance, self.w_max, self.t_hit, self.samples);
-        let mut tr = *tracker;
         let mut lanes = nonzero & (u32::MAX >> (32 - n as u32));
         while lanes != 0 {
             let l = lanes.trailing_zeros() as usize;
@@ -154,7 +153,7 @@ impl Scan {
             if new_max {
                 (w_max, t_hit) = (w, t);
             }
-            tr.sample(t, w, new_max);
+            tracker.sample(t, w, new_max);
             transmittance *= 1.0 - alpha;
             if transmittance < s.stop_ratio * w_max || transmittance < s.early_stop {
                 self.done = true;
@@ -162,7 +161,6 @@ impl Scan {
             }
         }
         (self.transmittance, self.w_max, self.t_hit, self.samples) = (transmittance, w_max, t_hit, samples);
-        *tracker = tr;
     }
 }
 
@@ -629,7 +627,7 @@ impl FastPrepared {
     /// `span`, [`BATCH`] at a time (a batch may reach past where the rule stops; the rule
     /// sees the samples one by one, in order).
     #[inline(always)]
-    fn march<const V: bool, T: Tracker + Copy>(&self, o: Vec3, d: Vec3, step: f32, span: (f32, f32), s: &RenderSettings, tracker: &mut T) -> MarchHit {
+    fn march<const V: bool, T: Tracker>(&self, o: Vec3, d: Vec3, step: f32, span: (f32, f32), s: &RenderSettings, tracker: &mut T) -> MarchHit {
         let density = &self.asset.density;
         let mut out = MarchHit::default();
         let Some((t0, t1)) = clip_ray(&density.bounds, o, d) else { return out };

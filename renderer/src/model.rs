@@ -180,7 +180,7 @@ pub struct Segment {
 /// The segment tracker of the multi-hit rule: at most [`MAX_SEGMENTS`] closed segments (when
 /// full, the lightest one that is not the primary gives way), the open one, and which one
 /// holds the max-weight sample.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Segments {
     gap_t: f32,
     closed: Closed,

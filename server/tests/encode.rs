@@ -236,19 +236,26 @@ fn config_bitrate_scales_and_clamps() {
 #[test]
 fn bench_encode_reports_numbers() {
     for (w, h) in [(640, 480), (1280, 720)] {
-        let r = bench_encode(w, h, &pattern_frames(w, h, 100)).unwrap();
-        println!(
-            "{w}x{h}@{}fps {} kbps: convert p50 {:.2} ms p99 {:.2} ms | encode p50 {:.2} ms p99 {:.2} ms | {:.0} B/frame, IDR {} B",
-            r.fps,
-            r.bitrate_bps / 1000,
-            r.convert_ms_p50,
-            r.convert_ms_p99,
-            r.encode_ms_p50,
-            r.encode_ms_p99,
-            r.bytes_per_frame,
-            r.idr_bytes
-        );
-        assert!(r.bytes_per_frame > 0.0 && r.encode_ms_p50 > 0.0);
+        let frames = pattern_frames(w, h, 100);
+        let [r, low] = [nephele::master::encoder::DEFAULT_BITS_PER_PIXEL, 0.03].map(|bpp| bench_encode(w, h, &frames, bpp).unwrap());
+        for r in [r, low] {
+            println!(
+                "{w}x{h}@{}fps {} kbps: convert p50 {:.2} ms p99 {:.2} ms | encode p50 {:.2} ms p99 {:.2} ms | {:.0} B/frame, IDR {} B, {:.2} dB",
+                r.fps,
+                r.bitrate_bps / 1000,
+                r.convert_ms_p50,
+                r.convert_ms_p99,
+                r.encode_ms_p50,
+                r.encode_ms_p99,
+                r.bytes_per_frame,
+                r.idr_bytes,
+                r.psnr_db
+            );
+            assert!(r.bytes_per_frame > 0.0 && r.encode_ms_p50 > 0.0);
+        }
+        // Every frame decodes, and fewer bits cost quality: the trade the table measures.
+        assert!(r.psnr_db > 30.0 && r.psnr_db < 99.0, "{} dB at the default rate", r.psnr_db);
+        assert!(low.bytes_per_frame < r.bytes_per_frame && low.psnr_db < r.psnr_db, "{low:?} against {r:?}");
     }
 }
 

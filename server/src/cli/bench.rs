@@ -75,6 +75,10 @@ pub enum BenchCommand {
         /// The real content; `none` for the pattern only.
         #[arg(long, default_value = DEFAULT_ASSET)]
         asset: String,
+        /// Bits per pixel per frame to compare (the server's `--bits-per-pixel`): encode time
+        /// and quality against bandwidth.
+        #[arg(long, value_delimiter = ',', default_value = "0.15")]
+        bits_per_pixel: Vec<f64>,
     },
     /// Per-stage and end-to-end streaming latency through an in-process server and the
     /// replay client, per frame size.
@@ -149,10 +153,13 @@ pub fn run(what: BenchCommand) -> Result<()> {
             print!("{}", format_report(&report));
             Ok(())
         }
-        BenchCommand::Encode { sizes, frames, asset } => {
+        BenchCommand::Encode { sizes, frames, asset, bits_per_pixel } => {
+            if let Some(bad) = bits_per_pixel.iter().find(|b| !(0.01..=10.0).contains(*b)) {
+                anyhow::bail!("--bits-per-pixel {bad} is outside 0.01..=10");
+            }
             let prepared = if asset == "none" { None } else { Some(nephele_renderer::FastCpuBackend.prepare(load_asset(&asset)?)?) };
-            println!("| content | size | frames | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes |");
-            println!("|---|---|---:|---:|---:|---:|---:|---:|");
+            println!("| content | size | frames | bits/pixel | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes | PSNR dB |");
+            println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
             for size in sizes.split(',') {
                 let (w, h) = parse_size(size)?;
                 let mut contents = vec![("test pattern".to_string(), crate::master::encoder::pattern_frames(w, h, frames))];
@@ -168,11 +175,13 @@ pub fn run(what: BenchCommand) -> Result<()> {
                     contents.push((asset.clone(), rendered));
                 }
                 for (name, content) in contents {
-                    let r = crate::master::encoder::bench_encode(w, h, &content)?;
-                    println!(
-                        "| {name} | {w}x{h} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} |",
-                        r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes
-                    );
+                    for &bpp in &bits_per_pixel {
+                        let r = crate::master::encoder::bench_encode(w, h, &content, bpp)?;
+                        println!(
+                            "| {name} | {w}x{h} | {} | {bpp} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} | {:.2} |",
+                            r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes, r.psnr_db
+                        );
+                    }
                 }
             }
             Ok(())

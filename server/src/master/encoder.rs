@@ -378,14 +378,18 @@ pub struct BenchResult {
     /// Mean over all frames, including the first (IDR).
     pub bytes_per_frame: f64,
     pub idr_bytes: usize,
+    /// Mean RGB PSNR of the decoded frames against the frames encoded, dB.
+    pub psnr_db: f64,
 }
 
-/// Encode `frames` at 50 fps settings (each `width × height` RGBA; the first is an IDR) and
-/// report timings and sizes.
-pub fn bench_encode(width: u32, height: u32, frames: &[Vec<u8>]) -> Result<BenchResult, EncodeError> {
-    let cfg = EncoderConfig::new(width, height, 50);
+/// Encode `frames` at 50 fps settings and `bits_per_pixel` (each `width × height` RGBA; the
+/// first is an IDR), decode them again (OpenH264), and report timings, sizes and PSNR.
+pub fn bench_encode(width: u32, height: u32, frames: &[Vec<u8>], bits_per_pixel: f64) -> Result<BenchResult, EncodeError> {
+    let cfg = EncoderConfig::with_bits_per_pixel(width, height, 50, bits_per_pixel);
     let mut encoder = FrameEncoder::new(cfg)?;
+    let mut decoder = openh264::decoder::Decoder::new()?;
     let (mut convert, mut encode, mut bytes, mut idr_bytes) = (vec![], vec![], 0usize, 0);
+    let (mut psnr_sum, mut decoded_frames, mut full) = (0.0, 0usize, Vec::new());
     for (i, rgba) in frames.iter().enumerate() {
         let frame = encoder.encode(rgba, width, height, i as u64)?;
         convert.push(frame.convert_ms);
@@ -393,6 +397,15 @@ pub fn bench_encode(width: u32, height: u32, frames: &[Vec<u8>]) -> Result<Bench
         bytes += frame.annex_b.len();
         if i == 0 {
             idr_bytes = frame.annex_b.len();
+        }
+        if let Some(yuv) = decoder.decode(&frame.annex_b)? {
+            let (dw, dh) = yuv.dimensions();
+            full.resize(dw * dh * 4, 0);
+            yuv.write_rgba8(&mut full);
+            // The coded picture may be padded to even sizes: compare the frame's own pixels.
+            let shown: Vec<u8> = full.chunks_exact(dw * 4).take(height as usize).flat_map(|row| &row[..width as usize * 4]).copied().collect();
+            psnr_sum += crate::client::replay::psnr_rgb(&shown, rgba).min(99.0);
+            decoded_frames += 1;
         }
     }
     let pct = |v: &mut Vec<f64>, q: f64| {
@@ -411,6 +424,7 @@ pub fn bench_encode(width: u32, height: u32, frames: &[Vec<u8>]) -> Result<Bench
         encode_ms_p99: pct(&mut encode, 0.99),
         bytes_per_frame: bytes as f64 / frames.len().max(1) as f64,
         idr_bytes,
+        psnr_db: psnr_sum / decoded_frames.max(1) as f64,
     })
 }
 
