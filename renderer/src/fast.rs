@@ -200,11 +200,11 @@ impl PshBricks {
         let mut index = vec![-1i32; grid.pow(3)];
         let mut tables = Vec::new();
         let mut values = Vec::with_capacity(stored.len() * nf);
+        // Every brick whose corners include a vertex: along each axis the brick it lies in
+        // and, on a brick face, the one below.
+        let along = |a: u32| [Some(a / b), (a.is_multiple_of(b) && a > 0).then(|| a / b - 1)].map(|c| c.filter(|&c| (c as usize) < grid));
         for (id, (q, slot)) in stored.iter().enumerate() {
             values.extend_from_slice(&h.values[slot * nf..(slot + 1) * nf]);
-            // Every brick whose corners include q: along each axis the brick q lies in and,
-            // on a brick face, the one below.
-            let along = |a: u32| [Some(a / b), (a.is_multiple_of(b) && a > 0).then(|| a / b - 1)].map(|c| c.filter(|&c| (c as usize) < grid));
             for z in along(q.z).into_iter().flatten() {
                 for y in along(q.y).into_iter().flatten() {
                     for x in along(q.x).into_iter().flatten() {
@@ -558,8 +558,8 @@ impl FastPrepared {
         let psh = &asset.psh;
         let mut corners = [Corners { id: [PshBricks::ABSENT; 8], weight: [0.0; 8] }; TILE];
         for tile in queries.chunks(TILE) {
-            // The hash sends neighbouring corners to scattered slots: find them all first
-            // and prefetch, so the tile's cache misses overlap instead of queueing.
+            // Find every query's corner vertices first and prefetch their features, so the
+            // tile's cache misses overlap instead of queueing.
             // (A plain loop, not `array::from_fn`: its closure would not be inlined into the
             // x86-64-v3 band.)
             for (lane, q) in tile.iter().enumerate() {
@@ -594,8 +594,10 @@ impl FastPrepared {
     }
 
     /// σ and `e^(−σδ)` of lattice samples `k0..k0 + BATCH`, each computed as the reference
-    /// does in the brick of the cell the sample lies in (0 outside live cells). `V`: with the
-    /// AVX2 kernel (only instantiated from the x86-64-v3 band).
+    /// does in the brick of the cell the sample lies in (0 outside live cells), and the mask
+    /// of lanes with σ ≠ 0. Only the first `n` lanes are needed: the AVX2 kernel skips the
+    /// half of the batch past them (left at σ = 0). `V`: with the AVX2 kernel (only
+    /// instantiated from the x86-64-v3 band).
     #[inline(always)]
     fn sigmas<const V: bool>(&self, k0: i32, n: usize, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH], u32) {
         let density = &self.asset.density;
@@ -871,16 +873,16 @@ mod tests {
             eprintln!("no AVX2 on this CPU: only the portable path exists");
             return;
         }
-        let built = crate::procedural::generate(&crate::procedural::ProceduralConfig::small(crate::procedural::Scene::Trio)).unwrap();
-        // As built in memory (f32 density) and as stored (f16: the paired reads).
-        let mut stored = built.clone();
-        stored.density = stored.density.stored_as(crate::cubes::CubeStorage::F16);
-        for (asset, f16) in [(built, false), (stored, true)] {
+        let stored = crate::procedural::generate(&crate::procedural::ProceduralConfig::small(crate::procedural::Scene::Trio)).unwrap();
+        // As stored (f16: the paired reads) and with densities no f16 holds, as cubes built
+        // in memory may have (the f32 reads).
+        let mut in_memory = stored.clone();
+        in_memory.density.values.iter_mut().for_each(|v| *v *= 1.0 + 1e-5);
+        for (asset, f16) in [(stored, true), (in_memory, false)] {
             let asset = Arc::new(asset);
             let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: PshBricks::new(&asset.psh), diffuse: None, asset: asset.clone() };
-            if f16 {
-                assert!(prepared.live.values_f16.is_some());
-            }
+            // Both kernels' paths are exercised.
+            assert_eq!(prepared.live.values_f16.is_some(), f16);
             same_sigmas(&prepared);
         }
     }

@@ -183,55 +183,36 @@ pub struct Segment {
 #[derive(Debug, Clone)]
 pub struct Segments {
     gap_t: f32,
-    closed: Closed,
-    /// The open segment (meaningful while `has_open`); only [`Closed::push`] touches the
-    /// closed ones.
-    open: Segment,
-    has_open: bool,
+    closed: [Segment; MAX_SEGMENTS],
+    n_closed: usize,
+    open: Option<Segment>,
     open_is_primary: bool,
     primary: Option<usize>,
-}
-
-/// The closed segments of [`Segments`].
-#[derive(Debug, Clone, Copy)]
-struct Closed {
-    segments: [Segment; MAX_SEGMENTS],
-    n: usize,
-}
-
-impl Closed {
-    /// Keeps `seg` if there is room or, when full, in place of the lightest segment that is
-    /// not `primary` if that one is lighter (or `seg` is the primary); where it went.
-    fn push(&mut self, seg: Segment, is_primary: bool, primary: Option<usize>) -> Option<usize> {
-        let slot = if self.n < MAX_SEGMENTS {
-            self.n += 1;
-            Some(self.n - 1)
-        } else {
-            let lightest = (0..MAX_SEGMENTS).filter(|&i| Some(i) != primary).min_by(|&a, &b| self.segments[a].weight.total_cmp(&self.segments[b].weight)).expect("at most one primary");
-            (is_primary || self.segments[lightest].weight < seg.weight).then_some(lightest)
-        };
-        if let Some(i) = slot {
-            self.segments[i] = seg;
-        }
-        slot
-    }
 }
 
 impl Segments {
     /// `gap_t`: the gap in ray-parameter units (`gap_steps · δ`).
     pub fn new(gap_t: f32) -> Self {
-        Self { gap_t, closed: Closed { segments: [Segment::default(); MAX_SEGMENTS], n: 0 }, open: Segment::default(), has_open: false, open_is_primary: false, primary: None }
+        Self { gap_t, closed: [Segment::default(); MAX_SEGMENTS], n_closed: 0, open: None, open_is_primary: false, primary: None }
     }
 
-    #[inline]
     fn close(&mut self) {
-        if !std::mem::take(&mut self.has_open) {
-            return;
-        }
+        let Some(seg) = self.open.take() else { return };
         let is_primary = std::mem::take(&mut self.open_is_primary);
-        let slot = self.closed.push(self.open, is_primary, self.primary);
-        if is_primary && slot.is_some() {
-            self.primary = slot;
+        let slot = if self.n_closed < MAX_SEGMENTS {
+            self.n_closed += 1;
+            Some(self.n_closed - 1)
+        } else {
+            // Full: the lightest closed segment that is not the primary gives way, if it is
+            // lighter than this one (or this one is the primary).
+            let lightest = (0..MAX_SEGMENTS).filter(|&i| Some(i) != self.primary).min_by(|&a, &b| self.closed[a].weight.total_cmp(&self.closed[b].weight)).expect("at most one primary");
+            (is_primary || self.closed[lightest].weight < seg.weight).then_some(lightest)
+        };
+        if let Some(i) = slot {
+            self.closed[i] = seg;
+            if is_primary {
+                self.primary = Some(i);
+            }
         }
     }
 
@@ -240,21 +221,20 @@ impl Segments {
     pub fn select(mut self, alpha_c: f32, rule: &HitRule) -> ([Segment; MAX_HITS], usize) {
         self.close();
         let Some(p) = self.primary else { return ([Segment::default(); MAX_HITS], 0) };
-        let closed = &self.closed.segments;
-        let mut chosen = [closed[p]; MAX_HITS];
+        let mut chosen = [self.closed[p]; MAX_HITS];
         let mut n = 1;
         // The heaviest segment not taken yet, again and again (the first of equals), as
         // `march.wgsl` does: no allocation per ray.
         let mut taken = [false; MAX_SEGMENTS];
         taken[p] = true;
         while n < (rule.max_hits as usize).min(MAX_HITS) {
-            let best = (0..self.closed.n).filter(|&i| !taken[i]).fold(None, |best: Option<usize>, i| match best {
-                Some(b) if closed[b].weight >= closed[i].weight => Some(b),
+            let best = (0..self.n_closed).filter(|&i| !taken[i]).fold(None, |best: Option<usize>, i| match best {
+                Some(b) if self.closed[b].weight >= self.closed[i].weight => Some(b),
                 _ => Some(i),
             });
-            let Some(best) = best.filter(|&b| closed[b].weight >= rule.tau * alpha_c) else { break };
+            let Some(best) = best.filter(|&b| self.closed[b].weight >= rule.tau * alpha_c) else { break };
             taken[best] = true;
-            chosen[n] = closed[best];
+            chosen[n] = self.closed[best];
             n += 1;
         }
         (chosen, n)
@@ -280,13 +260,10 @@ impl Tracker for Segments {
         if w.is_nan() || w <= 0.0 {
             return;
         }
-        if self.has_open && t - self.open.peak_t > self.gap_t {
+        if self.open.is_some_and(|o| t - o.peak_t > self.gap_t) {
             self.close();
         }
-        if !self.has_open {
-            (self.open, self.has_open) = (Segment { peak_t: t, first_t: t, ..Segment::default() }, true);
-        }
-        let open = &mut self.open;
+        let open = self.open.get_or_insert(Segment { peak_t: t, first_t: t, ..Segment::default() });
         open.weight += w;
         open.last_t = t;
         if w > open.peak_w {

@@ -19,6 +19,7 @@ use crate::{
     master::{
         MasterConfig,
         core::{CoreConfig, scheduler::RenderScale},
+        encoder::DEFAULT_BITS_PER_PIXEL,
     },
     web,
 };
@@ -77,7 +78,7 @@ pub enum BenchCommand {
         asset: String,
         /// Bits per pixel per frame to compare (the server's `--bits-per-pixel`): encode time
         /// and quality against bandwidth.
-        #[arg(long, value_delimiter = ',', default_value = "0.15")]
+        #[arg(long, value_delimiter = ',', default_values_t = [DEFAULT_BITS_PER_PIXEL])]
         bits_per_pixel: Vec<f64>,
     },
     /// Per-stage and end-to-end streaming latency through an in-process server and the
@@ -154,8 +155,8 @@ pub fn run(what: BenchCommand) -> Result<()> {
             Ok(())
         }
         BenchCommand::Encode { sizes, frames, asset, bits_per_pixel } => {
-            if let Some(bad) = bits_per_pixel.iter().find(|b| !(0.01..=10.0).contains(*b)) {
-                anyhow::bail!("--bits-per-pixel {bad} is outside 0.01..=10");
+            for &bpp in &bits_per_pixel {
+                crate::master::encoder::check_bits_per_pixel(bpp).map_err(anyhow::Error::msg)?;
             }
             let prepared = if asset == "none" { None } else { Some(nephele_renderer::FastCpuBackend.prepare(load_asset(&asset)?)?) };
             println!("| content | size | frames | bits/pixel | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes | PSNR dB |");

@@ -119,9 +119,7 @@ impl MasterOptions {
     /// Loads the scenes on the chosen backend and builds the master's configuration.
     pub fn load(&self, name: &str) -> Result<(Arc<Catalog>, MasterConfig)> {
         let render_scale = RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?;
-        if !(0.01..=10.0).contains(&self.bits_per_pixel) {
-            anyhow::bail!("--bits-per-pixel {} should be in 0.01..=10", self.bits_per_pixel);
-        }
+        crate::master::encoder::check_bits_per_pixel(self.bits_per_pixel).map_err(anyhow::Error::msg)?;
         let nats = self.nats.settings()?;
         // With a NATS farm the workers render; the master only needs the scenes' shapes.
         let backend = if nats.is_some() { Box::new(nephele_renderer::FastCpuBackend) } else { make_backend(self.backend)? };

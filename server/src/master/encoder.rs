@@ -63,6 +63,11 @@ pub const MAX_SLICE_BYTES: u32 = 1200;
 /// Bits per pixel per frame a stream gets by default (0.15: 2.3 Mbit/s at 640×480, 50 fps).
 pub const DEFAULT_BITS_PER_PIXEL: f64 = 0.15;
 
+/// Checks a `--bits-per-pixel` setting: 0.01..=10.
+pub fn check_bits_per_pixel(bits_per_pixel: f64) -> Result<(), String> {
+    (0.01..=10.0).contains(&bits_per_pixel).then_some(()).ok_or_else(|| format!("--bits-per-pixel {bits_per_pixel} should be in 0.01..=10"))
+}
+
 /// What to encode. `width`/`height` are the rendered (unpadded) size.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EncoderConfig {
