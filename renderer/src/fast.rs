@@ -14,7 +14,8 @@
 //!   to (the reference follows its DDA, this the sample's position), measured against the
 //!   reference in the tests and in `bench render`.
 //! - **The network in tiles.** Each band of rows is marched, its queries gathered, and then
-//!   shaded [`TILE`] at a time: inputs written feature-major, the MLP run as
+//!   shaded [`TILE`] at a time: inputs written feature-major (hash corners and 8-bit
+//!   diffuse corners gathered 8 queries at a time with AVX2), the MLP run as
 //!   register-blocked matrix products ([`MlpKernel::forward_tile`], AVX-512 or AVX2 + FMA
 //!   at run time). Fused multiply-adds round differently from the reference's separate ones
 //!   (output differences ~1e-6).
@@ -76,7 +77,8 @@ struct DiffuseBytes {
 
 impl DiffuseBytes {
     fn new(c: &TextureCubes) -> Option<Self> {
-        (c.storage == crate::cubes::CubeStorage::Unorm8 && c.channels == 4).then(|| Self {
+        let in_range = c.index.iter().all(|&b| b < c.brick_count() as i32) && c.index.len() == (c.grid as usize).pow(3) && c.values.len() < i32::MAX as usize;
+        (c.storage == crate::cubes::CubeStorage::Unorm8 && c.channels == 4 && in_range).then(|| Self {
             corners: c.values.chunks_exact(4).map(|v| [0, 1, 2, 3].map(|i| crate::cubes::CubeStorage::unorm8(v[i]))).collect(),
         })
     }
@@ -177,7 +179,8 @@ struct PshBricks {
     index: Vec<i32>,
     /// Per brick `(BRICK + 1)³` vertex ids, x fastest.
     tables: Vec<u32>,
-    /// `vertices × features`.
+    /// `(vertices + 1) × features`: the last row is zeros ([`Self::zero_id`]), which the
+    /// vector path reads for absent corners.
     values: Vec<f32>,
 }
 
@@ -219,7 +222,13 @@ impl PshBricks {
                 }
             }
         }
+        values.resize(values.len() + nf, 0.0);
         Self { grid, index, tables, values }
+    }
+
+    /// The id of the all-zero feature row.
+    fn zero_id(&self, features: usize) -> usize {
+        self.values.len() / features.max(1) - 1
     }
 
     /// The 8 corners of `p`'s cell (in [`SpatialHash::encode`]'s order and with its
@@ -535,7 +544,7 @@ impl FastPrepared {
         }
         let t_marched = Instant::now();
         stats.march_s = (t_marched - t).as_secs_f64();
-        self.shade(&queries, bg, &mut color, &mut alpha);
+        self.shade::<V>(&queries, bg, &mut color, &mut alpha);
         for (i, px) in rgba.chunks_exact_mut(4).enumerate() {
             let c = color[i];
             px.copy_from_slice(&[to_unorm8(c.x), to_unorm8(c.y), to_unorm8(c.z), to_unorm8(alpha[i])]);
@@ -545,50 +554,83 @@ impl FastPrepared {
     }
 
     /// Shades `queries` [`TILE`] at a time, adding each one's `β ×` (colour over `bg`, α) to
-    /// its pixel (as [`crate::model::shade_multi`] does).
+    /// its pixel (as [`crate::model::shade_multi`] does). `V`: the tile's hash features and
+    /// diffuse colours come from the AVX2 kernel where the asset allows ([`v3::tile_inputs`]).
     #[inline(always)]
-    fn shade(&self, queries: &[Query], bg: Vec3, color: &mut [Vec3], alpha: &mut [f32]) {
+    fn shade<const V: bool>(&self, queries: &[Query], bg: Vec3, color: &mut [Vec3], alpha: &mut [f32]) {
         let asset = &*self.asset;
         let features = asset.psh.features as usize;
         let width = self.net.input();
         debug_assert_eq!(width, features + 17);
         let mut x: TileInput = [[0.0; TILE]; MAX_INPUT];
-        let mut diffuse = [[0.0f32; 4]; TILE];
-        let mut encoded = [0.0f32; MAX_INPUT];
+        let mut diffuse = [[0.0f32; TILE]; 4];
         let psh = &asset.psh;
-        let mut corners = [Corners { id: [PshBricks::ABSENT; 8], weight: [0.0; 8] }; TILE];
+        let vector = V && features.is_multiple_of(8) && self.diffuse.is_some();
         for tile in queries.chunks(TILE) {
-            // Find every query's corner vertices first and prefetch their features, so the
-            // tile's cache misses overlap instead of queueing.
-            // (A plain loop, not `array::from_fn`: its closure would not be inlined into the
-            // x86-64-v3 band.)
-            for (lane, q) in tile.iter().enumerate() {
-                corners[lane] = self.hash.corners(psh, q.p_hit);
-                for &id in &corners[lane].id {
-                    prefetch(&self.hash.values, id as usize * features);
+            if vector {
+                let mut p = [[0.0f32; TILE]; 3];
+                // Lanes past the tile's end repeat its first query (their results are unused).
+                for (lane, q) in tile.iter().chain(std::iter::repeat(&tile[0])).take(TILE).enumerate() {
+                    (p[0][lane], p[1][lane], p[2][lane]) = (q.p_hit.x, q.p_hit.y, q.p_hit.z);
                 }
+                #[cfg(target_arch = "x86_64")]
+                #[allow(unsafe_code)]
+                // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`).
+                unsafe {
+                    v3::tile_inputs(&self.hash, psh, self.diffuse.as_ref().expect("checked above"), &asset.diffuse, &p, &mut x, &mut diffuse)
+                };
+            } else {
+                self.tile_inputs_scalar(tile, &mut x, &mut diffuse);
             }
             for (lane, q) in tile.iter().enumerate() {
-                diffuse[lane] = match &self.diffuse {
-                    Some(bytes) => bytes.sample(&asset.diffuse, q.p_hit),
-                    None => asset.diffuse.sample::<4>(q.p_hit),
-                };
-                self.hash.encode(&corners[lane], &mut encoded[..features]);
-                encoded[features..features + 16].copy_from_slice(&sh4(q.d));
-                encoded[features + 16] = q.alpha_c;
-                for (row, &v) in x.iter_mut().zip(&encoded[..width]) {
+                for (row, v) in x[features..].iter_mut().zip(sh4(q.d)) {
                     row[lane] = v;
                 }
+                x[features + 16][lane] = q.alpha_c;
             }
             let o = self.net.forward_tile(&x);
             for (lane, q) in tile.iter().enumerate() {
-                let [r, g, b, tint] = diffuse[lane];
+                let [r, g, b, tint] = diffuse.map(|c| c[lane]);
                 let c_s = Vec3::new(sigmoid(o[0][lane]), sigmoid(o[1][lane]), sigmoid(o[2][lane]));
                 let a = sigmoid(o[3][lane]);
                 let c = (Vec3::new(r, g, b) + tint * c_s).clamp(Vec3::ZERO, Vec3::ONE);
                 let px = q.pixel as usize;
                 color[px] += q.beta * (a * c + (1.0 - a) * bg);
                 alpha[px] += q.beta * a;
+            }
+        }
+    }
+
+    /// The hash features (rows `0..features` of `x`) and diffuse colours of a tile's queries,
+    /// one query at a time.
+    #[inline(always)]
+    fn tile_inputs_scalar(&self, tile: &[Query], x: &mut TileInput, diffuse: &mut [[f32; TILE]; 4]) {
+        let asset = &*self.asset;
+        let psh = &asset.psh;
+        let features = psh.features as usize;
+        let mut encoded = [0.0f32; MAX_INPUT];
+        let mut corners = [Corners { id: [PshBricks::ABSENT; 8], weight: [0.0; 8] }; TILE];
+        // Find every query's corner vertices first and prefetch their features, so the
+        // tile's cache misses overlap instead of queueing.
+        // (A plain loop, not `array::from_fn`: its closure would not be inlined into the
+        // x86-64-v3 band.)
+        for (lane, q) in tile.iter().enumerate() {
+            corners[lane] = self.hash.corners(psh, q.p_hit);
+            for &id in &corners[lane].id {
+                prefetch(&self.hash.values, id as usize * features);
+            }
+        }
+        for (lane, q) in tile.iter().enumerate() {
+            let rgbt = match &self.diffuse {
+                Some(bytes) => bytes.sample(&asset.diffuse, q.p_hit),
+                None => asset.diffuse.sample::<4>(q.p_hit),
+            };
+            for (c, v) in diffuse.iter_mut().zip(rgbt) {
+                c[lane] = v;
+            }
+            self.hash.encode(&corners[lane], &mut encoded[..features]);
+            for (row, &v) in x.iter_mut().zip(&encoded[..features]) {
+                row[lane] = v;
             }
         }
     }
@@ -777,6 +819,158 @@ mod v3 {
         (sigma, out, nonzero)
     }
 
+    /// [`FastPrepared::tile_inputs_scalar`] for a whole tile in AVX2 registers, 8 queries at
+    /// a time, from the query points `p[axis][lane]`: each query's 8 hash corners (brick
+    /// table reads gathered; an absent corner reads the zero row) and its features summed in
+    /// the scalar path's order (the same sums), and the 8-bit diffuse corners gathered and
+    /// weighted as bytes, scaled by 1/255 once (within an ulp of the scalar path's per-corner
+    /// division). Needs `features` a multiple of 8.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) fn tile_inputs(hash: &PshBricks, psh: &SpatialHash, bytes: &DiffuseBytes, cubes: &TextureCubes, p: &[[f32; TILE]; 3], x: &mut TileInput, diffuse: &mut [[f32; TILE]; 4]) {
+        use std::arch::x86_64::*;
+        let nf = psh.features as usize;
+        let zero_id = hash.zero_id(nf);
+        assert!(
+            nf.is_multiple_of(8)
+                && nf + 17 <= MAX_INPUT
+                && hash.index.len() == hash.grid.pow(3)
+                && hash.tables.len() < i32::MAX as usize
+                && zero_id < i32::MAX as usize
+                && cubes.channels == 4
+                && bytes.corners.len() == cubes.values.len() / 4
+                && cubes.index.len() == (cubes.grid as usize).pow(3)
+        );
+        const EDGE: i32 = PshBricks::EDGE as i32;
+        let mut ids = [[0u32; 8]; 8];
+        let mut weights = [[0.0f32; 8]; 8];
+        for half in 0..TILE / 8 {
+            let at = 8 * half;
+            // SAFETY: register arithmetic; loads of `p[axis][at..at + 8]` and stores into
+            // `ids`/`weights`/`diffuse[c][at..at + 8]` (all in bounds: `at + 8 ≤ TILE`);
+            // gathers of `hash.index` at brick coordinates each below `grid` (the cell's
+            // coordinate is clamped to `0..n` and `grid = ⌈n / BRICK⌉`), of `hash.tables` at
+            // `brick · EDGE³ + (l + corner) ` with `0 ≤ brick` < tables (masked where −1) and
+            // each of `l + corner` in `0..EDGE`, of `cubes.index` at cell coordinates clamped
+            // into `0..grid`, and of `bytes.corners` at `brick · corners + (base + corner)`
+            // with `0 ≤ brick < brick_count` (checked in `DiffuseBytes::new`; masked where
+            // −1) and each coordinate of `base + corner` in `0..=r`.
+            unsafe {
+                let load = |a: usize| _mm256_loadu_ps(p[a].as_ptr().add(at));
+                let (px, py, pz) = (load(0), load(1), load(2));
+                let one = _mm256_set1_ps(1.0);
+                let zero = _mm256_setzero_ps();
+                let weights8 = |fx: __m256, fy: __m256, fz: __m256, out: &mut [__m256; 8]| {
+                    let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
+                    for (corner, w) in out.iter_mut().enumerate() {
+                        let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                        *w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                    }
+                };
+                let mut w = [zero; 8];
+
+                // The hash: g = (p − min) / size · n, base = clamp(⌊g⌋, 0, n − 1),
+                // f = clamp(g − base, 0, 1), as `PshBricks::corners`.
+                let n = psh.grid as f32;
+                let (min, size) = (psh.bounds.min, psh.bounds.size());
+                let grid_f = |v: __m256, a: usize| _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(v, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(n));
+                let split = |g: __m256| {
+                    let base = _mm256_min_ps(_mm256_max_ps(_mm256_floor_ps(g), zero), _mm256_set1_ps(n - 1.0));
+                    (_mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g, base), zero), one), _mm256_cvttps_epi32(base))
+                };
+                let (fx, bx) = split(grid_f(px, 0));
+                let (fy, by) = split(grid_f(py, 1));
+                let (fz, bz) = split(grid_f(pz, 2));
+                weights8(fx, fy, fz, &mut w);
+                const { assert!(PshBricks::BRICK == 4, "the brick of a vertex is `>> 2`") };
+                let low = _mm256_set1_epi32(PshBricks::BRICK as i32 - 1);
+                let g = _mm256_set1_epi32(hash.grid as i32);
+                let brick_of = |b: __m256i| _mm256_srli_epi32::<2>(b);
+                let brick_at = _mm256_add_epi32(brick_of(bx), _mm256_mullo_epi32(g, _mm256_add_epi32(brick_of(by), _mm256_mullo_epi32(g, brick_of(bz)))));
+                let brick = _mm256_i32gather_epi32::<4>(hash.index.as_ptr(), brick_at);
+                let live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
+                let e = _mm256_set1_epi32(EDGE);
+                let (lx, ly, lz) = (_mm256_and_si256(bx, low), _mm256_and_si256(by, low), _mm256_and_si256(bz, low));
+                let table0 = _mm256_add_epi32(
+                    _mm256_mullo_epi32(_mm256_max_epi32(brick, _mm256_setzero_si256()), _mm256_set1_epi32(EDGE * EDGE * EDGE)),
+                    _mm256_add_epi32(lx, _mm256_mullo_epi32(e, _mm256_add_epi32(ly, _mm256_mullo_epi32(e, lz)))),
+                );
+                let absent = _mm256_set1_epi32(PshBricks::ABSENT as i32);
+                let zero_row = _mm256_set1_epi32(zero_id as i32);
+                for corner in 0..8i32 {
+                    let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                    let id = _mm256_mask_i32gather_epi32::<4>(absent, hash.tables.as_ptr().cast(), _mm256_add_epi32(table0, _mm256_set1_epi32(dx + EDGE * (dy + EDGE * dz))), live);
+                    let id = _mm256_blendv_epi8(id, zero_row, _mm256_cmpeq_epi32(id, absent));
+                    _mm256_storeu_si256(ids[corner as usize].as_mut_ptr().cast(), id);
+                    _mm256_storeu_ps(weights[corner as usize].as_mut_ptr(), w[corner as usize]);
+                }
+
+                // The diffuse cubes, as `TextureCubes::sample_with`: g = to_fine(p),
+                // cell = clamp(trunc(g / r), 0, grid − 1), u = clamp(g − cell·r, 0, r),
+                // base = min(trunc u, r − 1), f = u − base.
+                let res = cubes.fine_res() as f32;
+                let r = cubes.brick as f32;
+                let (min, size) = (cubes.bounds.min, cubes.bounds.size());
+                let fine = |v: __m256, a: usize| _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(v, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res));
+                let cell = |g: __m256| _mm256_floor_ps(_mm256_min_ps(_mm256_max_ps(_mm256_div_ps(g, _mm256_set1_ps(r)), zero), _mm256_set1_ps(cubes.grid as f32 - 1.0)));
+                let inside = |g: __m256, c: __m256| {
+                    let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g, _mm256_mul_ps(c, _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
+                    let base = _mm256_min_ps(_mm256_floor_ps(u), _mm256_set1_ps(r - 1.0));
+                    (_mm256_sub_ps(u, base), _mm256_cvttps_epi32(base))
+                };
+                let (gx, gy, gz) = (fine(px, 0), fine(py, 1), fine(pz, 2));
+                let (cx, cy, cz) = (cell(gx), cell(gy), cell(gz));
+                let (fx, bx) = inside(gx, cx);
+                let (fy, by) = inside(gy, cy);
+                let (fz, bz) = inside(gz, cz);
+                weights8(fx, fy, fz, &mut w);
+                let g = _mm256_set1_epi32(cubes.grid as i32);
+                let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(cx), _mm256_mullo_epi32(g, _mm256_add_epi32(_mm256_cvttps_epi32(cy), _mm256_mullo_epi32(g, _mm256_cvttps_epi32(cz)))));
+                let brick = _mm256_i32gather_epi32::<4>(cubes.index.as_ptr(), cell_at);
+                let live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
+                let e = cubes.brick as i32 + 1;
+                let ei = _mm256_set1_epi32(e);
+                let start = _mm256_add_epi32(
+                    _mm256_mullo_epi32(_mm256_max_epi32(brick, _mm256_setzero_si256()), _mm256_set1_epi32(cubes.brick_corners() as i32)),
+                    _mm256_add_epi32(bx, _mm256_mullo_epi32(ei, _mm256_add_epi32(by, _mm256_mullo_epi32(ei, bz)))),
+                );
+                let byte = _mm256_set1_epi32(0xff);
+                let mut acc = [zero; 4];
+                for corner in 0..8i32 {
+                    let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                    let v = _mm256_mask_i32gather_epi32::<4>(_mm256_setzero_si256(), bytes.corners.as_ptr().cast(), _mm256_add_epi32(start, _mm256_set1_epi32(dx + e * (dy + e * dz))), live);
+                    let wc = w[corner as usize];
+                    acc[0] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(v, byte)), acc[0]);
+                    acc[1] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32::<8>(v), byte)), acc[1]);
+                    acc[2] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32::<16>(v), byte)), acc[2]);
+                    acc[3] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_srli_epi32::<24>(v)), acc[3]);
+                }
+                for (c, a) in diffuse.iter_mut().zip(acc) {
+                    _mm256_storeu_ps(c.as_mut_ptr().add(at), _mm256_mul_ps(a, _mm256_set1_ps(1.0 / 255.0)));
+                }
+            }
+            // Features, one query at a time, 8 at once: Σ over corners of weight × row, in
+            // corner order (separate multiply and add, as `PshBricks::encode`).
+            for lane in 0..8 {
+                for chunk in (0..nf).step_by(8) {
+                    // SAFETY: register arithmetic on 8-float loads from bounds-checked slices.
+                    unsafe {
+                        let mut acc = _mm256_setzero_ps();
+                        for corner in 0..8 {
+                            let row = &hash.values[ids[corner][lane] as usize * nf + chunk..][..8];
+                            acc = _mm256_add_ps(acc, _mm256_mul_ps(_mm256_set1_ps(weights[corner][lane]), _mm256_loadu_ps(row.as_ptr())));
+                        }
+                        let mut out = [0.0f32; 8];
+                        _mm256_storeu_ps(out.as_mut_ptr(), acc);
+                        for (row, v) in x[chunk..chunk + 8].iter_mut().zip(out) {
+                            row[at + lane] = v;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     /// The low and high f16 of each 32-bit lane, as f32.
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
@@ -909,6 +1103,67 @@ mod tests {
             nonzero += usize::from(a.iter().any(|v| *v != 0.0));
         }
         assert!(nonzero > 1000, "{nonzero} points with features");
+    }
+
+    #[test]
+    fn vector_tile_inputs_match_the_scalar_path() {
+        if crate::mlp::simd::level() == crate::mlp::simd::Level::Portable {
+            eprintln!("no AVX2 on this CPU: only the portable path exists");
+            return;
+        }
+        // The shipped lego asset: 8 PSH features and 8-bit diffuse cubes, as the vector path needs.
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/assets/lego.nolf");
+        let asset = Arc::new(Asset::load(&path).unwrap());
+        let prepared = FastPrepared {
+            net: asset.mlp.kernel(),
+            live: LiveCells::new(&asset.density),
+            hash: PshBricks::new(&asset.psh),
+            diffuse: DiffuseBytes::new(&asset.diffuse),
+            asset: asset.clone(),
+        };
+        assert!(prepared.diffuse.is_some() && asset.psh.features % 8 == 0);
+        let nf = asset.psh.features as usize;
+        let cell = asset.density.bounds.size() / asset.density.grid as f32;
+        let mut rng = SmallRng::seed_from_u64(9);
+        let (mut with_features, mut with_diffuse) = (0, 0);
+        for round in 0..400 {
+            // Points in live density cells (where hits are), a few anywhere in or near the box.
+            let tile: Vec<Query> = (0..TILE)
+                .map(|lane| {
+                    let p_hit = if (round + lane) % 8 == 0 {
+                        asset.density.bounds.min + asset.density.bounds.size() * (Vec3::new(rng.random(), rng.random(), rng.random()) * 1.2 - 0.1)
+                    } else {
+                        let c = prepared.live.cells[rng.random_range(0..prepared.live.cells.len())];
+                        asset.density.bounds.min + (c.as_vec3() + Vec3::new(rng.random(), rng.random(), rng.random())) * cell
+                    };
+                    Query { p_hit, d: Vec3::Z, alpha_c: 1.0, beta: 1.0, pixel: 0 }
+                })
+                .collect();
+            let mut p = [[0.0f32; TILE]; 3];
+            for (lane, q) in tile.iter().enumerate() {
+                (p[0][lane], p[1][lane], p[2][lane]) = (q.p_hit.x, q.p_hit.y, q.p_hit.z);
+            }
+            let (mut xs, mut ds) = ([[0.0; TILE]; MAX_INPUT], [[0.0; TILE]; 4]);
+            let (mut xv, mut dv) = ([[0.0; TILE]; MAX_INPUT], [[0.0; TILE]; 4]);
+            prepared.tile_inputs_scalar(&tile, &mut xs, &mut ds);
+            // SAFETY: the CPU has x86-64-v3 (checked above).
+            #[allow(unsafe_code)]
+            unsafe {
+                v3::tile_inputs(&prepared.hash, &asset.psh, prepared.diffuse.as_ref().unwrap(), &asset.diffuse, &p, &mut xv, &mut dv)
+            };
+            for lane in 0..TILE {
+                let at = tile[lane].p_hit;
+                for f in 0..nf {
+                    assert_eq!(xs[f][lane].to_bits(), xv[f][lane].to_bits(), "feature {f} at {at}");
+                }
+                for c in 0..4 {
+                    assert!((ds[c][lane] - dv[c][lane]).abs() <= 1e-6, "diffuse {c} at {at}: {} vs {}", ds[c][lane], dv[c][lane]);
+                }
+                with_features += usize::from((0..nf).any(|f| xs[f][lane] != 0.0));
+                with_diffuse += usize::from((0..4).any(|c| ds[c][lane] != 0.0));
+            }
+        }
+        assert!(with_features > 3000 && with_diffuse > 3000, "{with_features} points with features, {with_diffuse} with diffuse colour");
     }
 
     fn same_sigmas(prepared: &FastPrepared) {
