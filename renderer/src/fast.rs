@@ -4,15 +4,18 @@
 //! - **Only where cells are live.** A prepass projects every live index cell (a brick with
 //!   some non-zero density) into the view: pixels outside every footprint take no sample,
 //!   and the rest march only the ray interval their footprints allow ([`Footprints`]).
-//! - **Samples in packets along the ray.** Inside that interval the samples of the
-//!   reference's lattice `t_k = t0 + (k+½)δ` are evaluated [`BATCH`] at a time (AVX2 gathers
-//!   for the trilinear corners — the density's f16 values read two corners at a time — and
-//!   a vector `exp`), each reading the brick of the cell it lies in (σ = 0 where the cell is
-//!   not live), then the samples with σ ≠ 0 are taken front to back by the same rule and
-//!   stopping tests ([`Scan`]). σ at each sample is the reference's to the bit; the only
-//!   difference is which of two touching cells a sample exactly on their shared face belongs
-//!   to (the reference follows its DDA, this the sample's position), measured against the
-//!   reference in the tests and in `bench render`.
+//! - **Eight rays at a time, one per vector lane** (`v3::march_wave`, AVX2). Each step
+//!   evaluates the next sample of the reference's lattice `t_k = t0 + (k+½)δ` on every lane's
+//!   ray (gathers for the cell's brick and the trilinear corners — the density's f16 values
+//!   read two corners at a time — and a vector `exp`) and applies the rule to it; a lane in
+//!   a dead cell jumps to where its ray leaves the cell, a finished lane takes the band's
+//!   next pixel. The eight rays' dependent reads overlap, and the steps have no branch on the
+//!   data. Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
+//!   [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). Both give the
+//!   same frames to the bit (tested). σ at each sample is the reference's to the bit; the
+//!   only difference is which of two touching cells a sample exactly on their shared face
+//!   belongs to (the reference follows its DDA, this the sample's position), measured
+//!   against the reference in the tests and in `bench render`.
 //! - **The network in tiles.** Each band of rows is marched, its queries gathered, and then
 //!   shaded [`TILE`] at a time: inputs written feature-major (hash corners and 8-bit
 //!   diffuse corners gathered 8 queries at a time with AVX2), the MLP run as
@@ -33,7 +36,7 @@ use crate::{
     camera::RayFrame,
     cubes::TextureCubes,
     mlp::{MAX_INPUT, MlpKernel, TILE, TileInput, sigmoid},
-    model::{HitRule, MarchHit, MultiHit, RenderSettings, Segments, Tracker, clip_ray},
+    model::{HitRule, MarchHit, MultiHit, RenderSettings, Segment, Segments, Tracker, clip_ray},
     psh::{self, SpatialHash},
     render::{Backend, CancelFlag, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest, check_request, to_unorm8},
     sh::sh4,
@@ -57,7 +60,10 @@ impl Backend for FastCpuBackend {
         let live = LiveCells::new(&asset.density);
         let hash = PshBricks::new(&asset.psh);
         let diffuse = DiffuseBytes::new(&asset.diffuse);
-        Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse }))
+        // `NEPHELE_MARCH=ray`: the per-ray march instead of the wavefront (for side-by-side
+        // measurements).
+        let wavefront = std::env::var("NEPHELE_MARCH").map_or(true, |v| v != "ray");
+        Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse, wavefront }))
     }
 }
 
@@ -67,6 +73,9 @@ struct FastPrepared {
     live: LiveCells,
     hash: PshBricks,
     diffuse: Option<DiffuseBytes>,
+    /// March the band's rays 8 at a time, one per lane ([`v3::march_wave`]), where the CPU
+    /// has AVX2; else (or with `NEPHELE_MARCH=ray`) one ray at a time along its lattice.
+    wavefront: bool,
 }
 
 /// 8-bit diffuse cubes kept as their bytes (a quarter of the f32 copy's cache footprint);
@@ -515,6 +524,43 @@ impl FastPrepared {
         let mut queries = Vec::with_capacity(n);
         let mut color = vec![Vec3::ZERO; n];
         let mut alpha = vec![0.0f32; n];
+        // A pixel's march result: its depth and queries, or the background.
+        let mut take = |i: usize, o: Vec3, d: Vec3, m: MultiHit| {
+            stats.samples += m.march.samples as u64;
+            if m.march.alpha_c < alpha_min {
+                color[i] = bg;
+                depth[i] = f32::INFINITY;
+                return;
+            }
+            stats.hits += 1;
+            stats.queries += m.count as u64;
+            depth[i] = (f.t_shift + m.march.t_hit) * f.scale;
+            for q in 0..m.count as usize {
+                queries.push(Query { p_hit: o + m.t[q] * d, d, alpha_c: m.march.alpha_c, beta: m.beta[q], pixel: i as u32 });
+            }
+        };
+        #[cfg(target_arch = "x86_64")]
+        if V && self.wavefront {
+            #[allow(unsafe_code)]
+            // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`).
+            unsafe {
+                let gap_t = rule.gap_steps * step;
+                if rule.one_hit() {
+                    v3::march_wave::<false>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m)));
+                } else {
+                    v3::march_wave::<true>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, segments| take(i, o, d, segments.choose(m, rule)));
+                }
+            }
+            let t_marched = Instant::now();
+            stats.march_s = (t_marched - t).as_secs_f64();
+            self.shade::<V>(&queries, bg, &mut color, &mut alpha);
+            for (i, px) in rgba.chunks_exact_mut(4).enumerate() {
+                let c = color[i];
+                px.copy_from_slice(&[to_unorm8(c.x), to_unorm8(c.y), to_unorm8(c.z), to_unorm8(alpha[i])]);
+            }
+            stats.shade_s = t_marched.elapsed().as_secs_f64();
+            return stats;
+        }
         for i in 0..n {
             let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
             // No live cell's footprint covers the pixel: the ray takes no sample (and is not
@@ -529,18 +575,7 @@ impl FastPrepared {
                 let m = self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut segments);
                 segments.choose(m, rule)
             };
-            stats.samples += m.march.samples as u64;
-            if m.march.alpha_c < alpha_min {
-                color[i] = bg;
-                depth[i] = f32::INFINITY;
-                continue;
-            }
-            stats.hits += 1;
-            stats.queries += m.count as u64;
-            depth[i] = (f.t_shift + m.march.t_hit) * f.scale;
-            for q in 0..m.count as usize {
-                queries.push(Query { p_hit: o + m.t[q] * d, d, alpha_c: m.march.alpha_c, beta: m.beta[q], pixel: i as u32 });
-            }
+            take(i, o, d, m);
         }
         let t_marched = Instant::now();
         stats.march_s = (t_marched - t).as_secs_f64();
@@ -971,6 +1006,309 @@ mod v3 {
         }
     }
 
+    /// The 8 lanes of [`march_wave`]: each one's ray, lattice and scan state.
+    #[derive(Default)]
+    struct Wave {
+        o: [[f32; 8]; 3],
+        d: [[f32; 8]; 3],
+        /// Per axis, `1 / (d[a] / size[a] · res)`: ray parameter per fine-grid unit (±∞
+        /// where the ray is parallel to the axis).
+        t_per_fine: [[f32; 8]; 3],
+        /// The ray parameter where it enters the box (the lattice's origin).
+        t0: [f32; 8],
+        /// The next lattice sample, and the end of the ray's samples.
+        k: [i32; 8],
+        k_end: [i32; 8],
+        transmittance: [f32; 8],
+        w_max: [f32; 8],
+        t_hit: [f32; 8],
+        samples: [u32; 8],
+    }
+
+    /// A lane's pixel, and its closed segments (multi-hit).
+    struct Ray {
+        pixel: usize,
+        o: Vec3,
+        d: Vec3,
+        segments: Segments,
+    }
+
+    /// The open segment of each lane's ray ([`Segments`]' open run, kept in vectors).
+    #[derive(Default)]
+    struct Runs {
+        /// All ones where the lane has an open run, and where it holds the heaviest sample.
+        open: [i32; 8],
+        primary: [i32; 8],
+        weight: [f32; 8],
+        peak_w: [f32; 8],
+        peak_t: [f32; 8],
+        first_t: [f32; 8],
+        last_t: [f32; 8],
+    }
+
+    impl Runs {
+        fn segment(&self, l: usize) -> Segment {
+            Segment { weight: self.weight[l], peak_w: self.peak_w[l], peak_t: self.peak_t[l], first_t: self.first_t[l], last_t: self.last_t[l] }
+        }
+    }
+
+    /// Steps of [`march_wave`] between looks at which lanes have finished.
+    const STEPS: usize = 4;
+
+    /// The band's rays marched 8 at a time, one per lane ("wavefront"): each step evaluates
+    /// one lattice sample of every lane's ray, so the lanes' dependent reads (cell, then
+    /// corners) overlap instead of queueing along one ray, and no sample past a ray's stop is
+    /// evaluated. A lane whose sample lies in a dead cell jumps to the first lattice sample
+    /// at or after where its ray leaves the cell, less a margin of δ/16 (far above the
+    /// rounding of the sample positions and of the jump), so every skipped sample lies in the
+    /// dead cell: σ = 0, which changes nothing. Each lane takes its samples in order by the
+    /// reference's rule, so every ray's result is [`FastPrepared::march`]'s. The steps have no
+    /// branch on the data: lanes that finish are frozen, and every [`STEPS`] steps they take
+    /// the band's next pixels. `finish(pixel, o, d, hit, tracker)` gets every pixel of the
+    /// band once.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) fn march_wave<const MULTI: bool>(
+        p: &FastPrepared,
+        f: &RayFrame,
+        s: &RenderSettings,
+        step: f32,
+        gap_t: f32,
+        y0: u32,
+        bounds: Option<&RayBounds>,
+        n: usize,
+        mut finish: impl FnMut(usize, Vec3, Vec3, MarchHit, Segments),
+    ) {
+        use std::arch::x86_64::*;
+        let density = &p.asset.density;
+        let cells = &p.live;
+        let live_index = &cells.index;
+        let b = density.grid as i32;
+        let e = density.brick as i32 + 1;
+        let corners = density.brick_corners();
+        assert!(
+            density.channels == 1
+                && live_index.len() == (b as usize).pow(3)
+                && density.values.len() == density.brick_count() * corners
+                && density.values.len() < i32::MAX as usize
+                && cells.values_f16.as_ref().is_none_or(|h| h.len() == density.values.len())
+        );
+        let width = f.intrinsics.width;
+        let pow2 = density.brick.is_power_of_two();
+        let r = density.brick as f32;
+        let res = density.fine_res() as f32;
+        let (min, size) = (density.bounds.min, density.bounds.size());
+        let mut wave = Wave::default();
+        let mut rays: [Option<Ray>; 8] = [None, None, None, None, None, None, None, None];
+        let mut runs = Runs::default();
+        let mut next_pixel = 0usize;
+        // Gives `lane` the band's next pixel that has samples to take, finishing the ones
+        // without on the way; false when the band has no pixel left.
+        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, rays: &mut [Option<Ray>; 8], finish: &mut dyn FnMut(usize, Vec3, Vec3, MarchHit, Segments)| -> bool {
+            while next_pixel < n {
+                let i = next_pixel;
+                next_pixel += 1;
+                let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
+                if t_lo > t_hi {
+                    finish(i, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), Segments::new(gap_t));
+                    continue;
+                }
+                let (o, d) = f.ray(i as u32 % width, y0 + i as u32 / width);
+                // The lattice samples in [t_begin, t_end), as `FastPrepared::march` counts them.
+                let lattice = clip_ray(&density.bounds, o, d).and_then(|(t0, t1)| {
+                    let (t_begin, t_end) = (t0.max(t_lo), t1.min(t_hi));
+                    let k_first = ((t_begin - t0) / step - 0.5).ceil().max(0.0) as i32;
+                    let k_end = ((t_end - t0) / step - 0.5).ceil() as i32;
+                    (t_begin < t_end && k_first < k_end).then_some((t0, k_first, k_end))
+                });
+                let Some((t0, k_first, k_end)) = lattice else {
+                    finish(i, o, d, MarchHit::default(), Segments::new(gap_t));
+                    continue;
+                };
+                for a in 0..3 {
+                    (wave.o[a][lane], wave.d[a][lane]) = (o[a], d[a]);
+                    let rate = d[a] / size[a] * res;
+                    wave.t_per_fine[a][lane] = if rate == 0.0 { f32::INFINITY } else { 1.0 / rate };
+                }
+                (wave.t0[lane], wave.k[lane], wave.k_end[lane]) = (t0, k_first, k_end);
+                (wave.transmittance[lane], wave.w_max[lane], wave.t_hit[lane], wave.samples[lane]) = (1.0, 0.0, 0.0, 0);
+                (runs.open[lane], runs.primary[lane]) = (0, 0);
+                rays[lane] = Some(Ray { pixel: i, o, d, segments: Segments::new(gap_t) });
+                return true;
+            }
+            false
+        };
+        let mut active = 0u32;
+        for lane in 0..8 {
+            if refill(lane, &mut wave, &mut runs, &mut rays, &mut finish) {
+                active |= 1 << lane;
+            }
+        }
+        let margin = step / 16.0;
+        while active != 0 {
+            // Lanes that have finished (or are idle): frozen until the refill below.
+            let mut finished = !active & 0xff;
+            for _ in 0..STEPS {
+                // SAFETY: register arithmetic; loads and stores of the lanes' 8-element arrays;
+                // gathers of `live[x + b·(y + b·z)]` with each coordinate clamped to 0..b,
+                // then of `values[brick · corners + x + e·(y + e·z)]` with 0 ≤ brick < bricks
+                // (−1 replaced by 0, and masked out after) and each coordinate in 0..=r — or
+                // 32-bit reads of `values_f16` at the same index with x ≤ r − 1 (as in
+                // `sigmas`).
+                let stopped = unsafe {
+                    let ld = |a: &[f32; 8]| _mm256_loadu_ps(a.as_ptr());
+                    let ldi = |a: &[i32; 8]| _mm256_loadu_si256(a.as_ptr().cast());
+                    let one = _mm256_set1_ps(1.0);
+                    let zero = _mm256_setzero_ps();
+                    // All ones in the lanes that are frozen.
+                    let frozen = _mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32(finished as i32), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256());
+                    let k = ldi(&wave.k);
+                    // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) / size · res (as `sigmas`).
+                    let t0 = ld(&wave.t0);
+                    let t = _mm256_add_ps(t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
+                    // (Closures called directly, not through `array::map`: those would not be
+                    // inlined.)
+                    let fine = |a: usize| {
+                        let pa = _mm256_add_ps(ld(&wave.o[a]), _mm256_mul_ps(t, ld(&wave.d[a])));
+                        _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(pa, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res))
+                    };
+                    let g = [fine(0), fine(1), fine(2)];
+                    let over_r = |g: __m256| if pow2 { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
+                    let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), zero), _mm256_set1_ps((b - 1) as f32));
+                    let c = [cell(g[0]), cell(g[1]), cell(g[2])];
+                    let bi = _mm256_set1_epi32(b);
+                    let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(c[0]), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(c[1]), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(c[2])))));
+                    let brick = _mm256_i32gather_epi32::<4>(live_index.as_ptr(), cell_at);
+                    let is_live = _mm256_andnot_si256(frozen, _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1)));
+                    let brick = _mm256_max_epi32(brick, _mm256_setzero_si256());
+                    // u = clamp(g − cell·r, 0, r), base = min(trunc u, r − 1), f = u − base.
+                    let split = |a: usize| {
+                        let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
+                        let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
+                        (_mm256_sub_ps(u, base), _mm256_cvttps_epi32(base))
+                    };
+                    let (fx, bx) = split(0);
+                    let (fy, by) = split(1);
+                    let (fz, bz) = split(2);
+                    let ei = _mm256_set1_epi32(e);
+                    let start = _mm256_mullo_epi32(brick, _mm256_set1_epi32(corners as i32));
+                    let idx0 = _mm256_add_epi32(start, _mm256_add_epi32(bx, _mm256_mullo_epi32(ei, _mm256_add_epi32(by, _mm256_mullo_epi32(ei, bz)))));
+                    let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
+                    let mut acc = zero;
+                    if let Some(h) = &cells.values_f16 {
+                        for pair in 0..4i32 {
+                            let (dy, dz) = (pair & 1, pair >> 1);
+                            let bits = _mm256_i32gather_epi32::<2>(h.as_ptr().cast(), _mm256_add_epi32(idx0, _mm256_set1_epi32(e * (dy + e * dz))));
+                            let (v0, v1) = f16_pairs(bits);
+                            let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                            acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
+                            acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
+                        }
+                    } else {
+                        for corner in 0..8i32 {
+                            let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                            let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                            let v = _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz))));
+                            acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
+                        }
+                    }
+                    let sigma = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
+                    let ex = _mm256_blendv_ps(one, exp_neg8(_mm256_mul_ps(sigma, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
+                    // The rule, as `Scan::take` on each lane: α = 1 − e, w = T·α, the heaviest
+                    // sample, T ·= 1 − α, then the stopping tests. With σ = 0 (dead cells and
+                    // frozen lanes), α = 0 and nothing changes, so every lane runs it; only
+                    // σ ≠ 0 samples count and can stop.
+                    let nonzero = _mm256_cmp_ps::<_CMP_NEQ_UQ>(sigma, zero);
+                    let alpha = _mm256_sub_ps(one, ex);
+                    let transmittance = ld(&wave.transmittance);
+                    let w = _mm256_mul_ps(transmittance, alpha);
+                    let w_max = ld(&wave.w_max);
+                    let new_max = _mm256_cmp_ps::<_CMP_GT_OQ>(w, w_max);
+                    let w_max = _mm256_blendv_ps(w_max, w, new_max);
+                    _mm256_storeu_ps(wave.w_max.as_mut_ptr(), w_max);
+                    _mm256_storeu_ps(wave.t_hit.as_mut_ptr(), _mm256_blendv_ps(ld(&wave.t_hit), t, new_max));
+                    let transmittance = _mm256_mul_ps(transmittance, _mm256_sub_ps(one, alpha));
+                    _mm256_storeu_ps(wave.transmittance.as_mut_ptr(), transmittance);
+                    let stop = _mm256_or_ps(
+                        _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_mul_ps(_mm256_set1_ps(s.stop_ratio), w_max)),
+                        _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_set1_ps(s.early_stop)),
+                    );
+                    let samples = _mm256_sub_epi32(_mm256_loadu_si256(wave.samples.as_ptr().cast()), _mm256_castps_si256(nonzero));
+                    _mm256_storeu_si256(wave.samples.as_mut_ptr().cast(), samples);
+                    if MULTI {
+                        // `Segments::sample` on each lane with w > 0 (not NaN): a sample past
+                        // the gap after the open run's peak closes the run (scalar: the closed
+                        // runs' bookkeeping), then the open run takes the sample.
+                        let valid = _mm256_andnot_ps(_mm256_castsi256_ps(frozen), _mm256_cmp_ps::<_CMP_GT_OQ>(w, zero));
+                        let open = _mm256_castsi256_ps(ldi(&runs.open));
+                        let past_gap = _mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_sub_ps(t, ld(&runs.peak_t)), _mm256_set1_ps(gap_t));
+                        let mut closing = _mm256_movemask_ps(_mm256_and_ps(_mm256_and_ps(valid, open), past_gap)) as u32;
+                        while closing != 0 {
+                            let l = closing.trailing_zeros() as usize;
+                            closing &= closing - 1;
+                            if let Some(ray) = &mut rays[l] {
+                                ray.segments.close_run(runs.segment(l), runs.primary[l] != 0);
+                            }
+                            (runs.open[l], runs.primary[l]) = (0, 0);
+                        }
+                        let open = _mm256_castsi256_ps(ldi(&runs.open));
+                        let start = _mm256_andnot_ps(open, valid);
+                        let weight = _mm256_blendv_ps(ld(&runs.weight), zero, start);
+                        let peak_w = _mm256_blendv_ps(ld(&runs.peak_w), zero, start);
+                        let peak_t = _mm256_blendv_ps(ld(&runs.peak_t), t, start);
+                        _mm256_storeu_ps(runs.first_t.as_mut_ptr(), _mm256_blendv_ps(ld(&runs.first_t), t, start));
+                        _mm256_storeu_si256(runs.open.as_mut_ptr().cast(), _mm256_castps_si256(_mm256_or_ps(open, valid)));
+                        _mm256_storeu_ps(runs.weight.as_mut_ptr(), _mm256_blendv_ps(weight, _mm256_add_ps(weight, w), valid));
+                        _mm256_storeu_ps(runs.last_t.as_mut_ptr(), _mm256_blendv_ps(ld(&runs.last_t), t, valid));
+                        let heavier = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(w, peak_w));
+                        _mm256_storeu_ps(runs.peak_w.as_mut_ptr(), _mm256_blendv_ps(peak_w, w, heavier));
+                        _mm256_storeu_ps(runs.peak_t.as_mut_ptr(), _mm256_blendv_ps(peak_t, t, heavier));
+                        let primary = _mm256_or_ps(_mm256_castsi256_ps(ldi(&runs.primary)), _mm256_and_ps(valid, new_max));
+                        _mm256_storeu_si256(runs.primary.as_mut_ptr().cast(), _mm256_castps_si256(primary));
+                    }
+                    // The next sample: k + 1 in a live cell; in a dead one, the first lattice
+                    // sample at or after t_exit − margin, if that is further; a frozen lane
+                    // stays.
+                    let k1 = _mm256_add_epi32(k, _mm256_set1_epi32(1));
+                    let exit = |a: usize| {
+                        let t_per = ld(&wave.t_per_fine[a]);
+                        let up = _mm256_cmp_ps::<_CMP_GT_OQ>(t_per, zero);
+                        let bound = _mm256_mul_ps(_mm256_add_ps(c[a], _mm256_and_ps(up, one)), _mm256_set1_ps(r));
+                        // (bound − g)·t_per: ≥ 0, or NaN for a parallel ray (0·∞), which
+                        // `min_ps` drops in favour of its second operand.
+                        _mm256_mul_ps(_mm256_sub_ps(bound, g[a]), t_per)
+                    };
+                    let dt = _mm256_min_ps(exit(2), _mm256_min_ps(exit(1), exit(0)));
+                    let ks = _mm256_ceil_ps(_mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(_mm256_sub_ps(_mm256_add_ps(t, dt), _mm256_set1_ps(margin)), t0), _mm256_set1_ps(1.0 / step)), _mm256_set1_ps(0.5)));
+                    // min(k_end, ks) keeps a NaN (its second operand); max(·, k + 1) then
+                    // takes k + 1 for it.
+                    let k_end = ldi(&wave.k_end);
+                    let ks = _mm256_max_ps(_mm256_min_ps(_mm256_cvtepi32_ps(k_end), ks), _mm256_cvtepi32_ps(k1));
+                    let k_next = _mm256_blendv_epi8(_mm256_blendv_epi8(_mm256_cvttps_epi32(ks), k1, is_live), k, frozen);
+                    _mm256_storeu_si256(wave.k.as_mut_ptr().cast(), k_next);
+                    let past_end = !(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(k_end, k_next))) as u32) & 0xff;
+                    (_mm256_movemask_ps(_mm256_and_ps(stop, nonzero)) as u32) | past_end
+                };
+                finished |= stopped;
+            }
+            let mut bits = finished & active;
+            while bits != 0 {
+                let l = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let mut ray = rays[l].take().expect("an active lane");
+                let hit = MarchHit { t_hit: wave.t_hit[l], alpha_c: 1.0 - wave.transmittance[l], w_max: wave.w_max[l], samples: wave.samples[l] };
+                if MULTI && runs.open[l] != 0 {
+                    ray.segments.set_open(runs.segment(l), runs.primary[l] != 0);
+                }
+                finish(ray.pixel, ray.o, ray.d, hit, ray.segments);
+                if !refill(l, &mut wave, &mut runs, &mut rays, &mut finish) {
+                    active &= !(1 << l);
+                }
+            }
+        }
+    }
+
     /// The low and high f16 of each 32-bit lane, as f32.
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
@@ -1074,7 +1412,7 @@ mod tests {
         in_memory.density.values.iter_mut().for_each(|v| *v *= 1.0 + 1e-5);
         for (asset, f16) in [(stored, true), (in_memory, false)] {
             let asset = Arc::new(asset);
-            let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: PshBricks::new(&asset.psh), diffuse: None, asset: asset.clone() };
+            let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: PshBricks::new(&asset.psh), diffuse: None, asset: asset.clone(), wavefront: true };
             // Both kernels' paths are exercised.
             assert_eq!(prepared.live.values_f16.is_some(), f16);
             same_sigmas(&prepared);
@@ -1120,8 +1458,9 @@ mod tests {
             hash: PshBricks::new(&asset.psh),
             diffuse: DiffuseBytes::new(&asset.diffuse),
             asset: asset.clone(),
+            wavefront: true,
         };
-        assert!(prepared.diffuse.is_some() && asset.psh.features % 8 == 0);
+        assert!(prepared.diffuse.is_some() && asset.psh.features.is_multiple_of(8));
         let nf = asset.psh.features as usize;
         let cell = asset.density.bounds.size() / asset.density.grid as f32;
         let mut rng = SmallRng::seed_from_u64(9);
@@ -1164,6 +1503,50 @@ mod tests {
             }
         }
         assert!(with_features > 3000 && with_diffuse > 3000, "{with_features} points with features, {with_diffuse} with diffuse colour");
+    }
+
+    #[test]
+    fn wavefront_and_per_ray_marches_render_the_same_frames() {
+        if crate::mlp::simd::level() == crate::mlp::simd::Level::Portable {
+            eprintln!("no AVX2 on this CPU: only the per-ray march exists");
+            return;
+        }
+        use crate::{Intrinsics, View, ViewRequest};
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/assets/lego.nolf");
+        let lego = Asset::load(&path).unwrap();
+        let procedural = |scene| crate::procedural::generate(&crate::procedural::ProceduralConfig::small(scene)).unwrap();
+        let (trio, translucent) = (procedural(crate::procedural::Scene::Trio), procedural(crate::procedural::Scene::Translucent));
+        let orbit = |w, h, azimuth, elevation, distance| ViewRequest::new(View::orbit(glam::DVec3::ZERO, distance, azimuth, elevation, Intrinsics::from_fov_x(w, h, 0.69)));
+        // Outside the box, grazing, and inside it (whole rays, no footprints).
+        let inside = ViewRequest::new(View::look_at(glam::DVec3::new(-0.2, 0.0, 0.3), glam::DVec3::new(0.65, 0.35, 0.0), glam::DVec3::Z, Intrinsics::from_fov_x(48, 40, 1.2)));
+        let views = [orbit(160, 120, 35.0, 25.0, 4.0), orbit(97, 61, 200.0, -10.0, 3.0), orbit(64, 64, 90.0, 0.0, 6.0), inside];
+        for asset in [lego, trio, translucent] {
+            let asset = Arc::new(asset);
+            let prepare = |wavefront| FastPrepared {
+                net: asset.mlp.kernel(),
+                live: LiveCells::new(&asset.density),
+                hash: PshBricks::new(&asset.psh),
+                diffuse: DiffuseBytes::new(&asset.diffuse),
+                asset: asset.clone(),
+                wavefront,
+            };
+            let (wave, ray) = (prepare(true), prepare(false));
+            for settings in [
+                RenderSettings { hit_tau: Some(1.0), ..Default::default() },
+                RenderSettings::default(),
+                RenderSettings { hit_tau: Some(0.02), max_hits: Some(3), ..Default::default() },
+                RenderSettings { hit_tau: Some(1.0), step_scale: 0.5, stop_ratio: 0.5, ..Default::default() },
+            ] {
+                let a = wave.render(&views, &settings).unwrap();
+                let b = ray.render(&views, &settings).unwrap();
+                for (fa, fb) in a.frames.iter().zip(&b.frames) {
+                    assert!(fa.rgba == fb.rgba, "{settings:?}: the colours differ");
+                    assert!(fa.depth.iter().zip(&fb.depth).all(|(x, y)| x.to_bits() == y.to_bits()), "{settings:?}: the depths differ");
+                }
+                assert_eq!((a.stats.hits, a.stats.samples, a.stats.queries), (b.stats.hits, b.stats.samples, b.stats.queries), "{settings:?}");
+                assert!(a.stats.hits > 1000, "{settings:?}: the views should hit ({} hits)", a.stats.hits);
+            }
+        }
     }
 
     fn same_sigmas(prepared: &FastPrepared) {

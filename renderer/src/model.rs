@@ -216,6 +216,23 @@ impl Segments {
         }
     }
 
+    /// Makes `run` the open run, as [`Tracker::sample`] would have left it (`is_primary`: it
+    /// holds the ray's heaviest sample), for callers that track the open run themselves (the
+    /// fast renderer, 8 rays at a time).
+    pub fn set_open(&mut self, run: Segment, is_primary: bool) {
+        self.open = Some(run);
+        self.open_is_primary = is_primary;
+        if is_primary {
+            self.primary = None;
+        }
+    }
+
+    /// [`Self::set_open`], then closed as a sample past the gap closes it.
+    pub fn close_run(&mut self, run: Segment, is_primary: bool) {
+        self.set_open(run, is_primary);
+        self.close();
+    }
+
     /// The segments queried under `rule` for a ray of coarse opacity `alpha_c`, primary
     /// first, and how many there are (0 without any weight).
     pub fn select(mut self, alpha_c: f32, rule: &HitRule) -> ([Segment; MAX_HITS], usize) {
