@@ -546,9 +546,13 @@ impl FastPrepared {
             unsafe {
                 let gap_t = rule.gap_steps * step;
                 if rule.one_hit() {
-                    v3::march_wave::<false>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m)));
+                    v3::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m)));
                 } else {
-                    v3::march_wave::<true>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, segments| take(i, o, d, segments.choose(m, rule)));
+                    // The lane's segments go to `choose`, fresh ones stay for its next ray.
+                    let fresh = Segments::new(gap_t);
+                    v3::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, segments| {
+                        take(i, o, d, std::mem::replace(segments, fresh.clone()).choose(m, rule))
+                    });
                 }
             }
             let t_marched = Instant::now();
@@ -1025,14 +1029,6 @@ mod v3 {
         samples: [u32; 8],
     }
 
-    /// A lane's pixel, and its closed segments (multi-hit).
-    struct Ray {
-        pixel: usize,
-        o: Vec3,
-        d: Vec3,
-        segments: Segments,
-    }
-
     /// The open segment of each lane's ray ([`Segments`]' open run, kept in vectors).
     #[derive(Default)]
     struct Runs {
@@ -1069,7 +1065,7 @@ mod v3 {
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    pub(super) fn march_wave<const MULTI: bool>(
+    pub(super) fn march_wave<const MULTI: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments)>(
         p: &FastPrepared,
         f: &RayFrame,
         s: &RenderSettings,
@@ -1078,7 +1074,7 @@ mod v3 {
         y0: u32,
         bounds: Option<&RayBounds>,
         n: usize,
-        mut finish: impl FnMut(usize, Vec3, Vec3, MarchHit, Segments),
+        mut finish: F,
     ) {
         use std::arch::x86_64::*;
         let density = &p.asset.density;
@@ -1100,18 +1096,22 @@ mod v3 {
         let res = density.fine_res() as f32;
         let (min, size) = (density.bounds.min, density.bounds.size());
         let mut wave = Wave::default();
-        let mut rays: [Option<Ray>; 8] = [None, None, None, None, None, None, None, None];
+        // Each lane's pixel and closed segments (multi-hit; `finish` takes them and leaves
+        // fresh ones), and the open segments.
+        let mut pixel = [0usize; 8];
+        let mut segments: [Segments; 8] = std::array::from_fn(|_| Segments::new(gap_t));
+        let mut no_segments = Segments::new(gap_t);
         let mut runs = Runs::default();
         let mut next_pixel = 0usize;
         // Gives `lane` the band's next pixel that has samples to take, finishing the ones
         // without on the way; false when the band has no pixel left.
-        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, rays: &mut [Option<Ray>; 8], finish: &mut dyn FnMut(usize, Vec3, Vec3, MarchHit, Segments)| -> bool {
+        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, pixel: &mut [usize; 8], finish: &mut F| -> bool {
             while next_pixel < n {
                 let i = next_pixel;
                 next_pixel += 1;
                 let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
                 if t_lo > t_hi {
-                    finish(i, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), Segments::new(gap_t));
+                    finish(i, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), &mut no_segments);
                     continue;
                 }
                 let (o, d) = f.ray(i as u32 % width, y0 + i as u32 / width);
@@ -1123,7 +1123,7 @@ mod v3 {
                     (t_begin < t_end && k_first < k_end).then_some((t0, k_first, k_end))
                 });
                 let Some((t0, k_first, k_end)) = lattice else {
-                    finish(i, o, d, MarchHit::default(), Segments::new(gap_t));
+                    finish(i, o, d, MarchHit::default(), &mut no_segments);
                     continue;
                 };
                 for a in 0..3 {
@@ -1134,14 +1134,14 @@ mod v3 {
                 (wave.t0[lane], wave.k[lane], wave.k_end[lane]) = (t0, k_first, k_end);
                 (wave.transmittance[lane], wave.w_max[lane], wave.t_hit[lane], wave.samples[lane]) = (1.0, 0.0, 0.0, 0);
                 (runs.open[lane], runs.primary[lane]) = (0, 0);
-                rays[lane] = Some(Ray { pixel: i, o, d, segments: Segments::new(gap_t) });
+                pixel[lane] = i;
                 return true;
             }
             false
         };
         let mut active = 0u32;
         for lane in 0..8 {
-            if refill(lane, &mut wave, &mut runs, &mut rays, &mut finish) {
+            if refill(lane, &mut wave, &mut runs, &mut pixel, &mut finish) {
                 active |= 1 << lane;
             }
         }
@@ -1247,9 +1247,7 @@ mod v3 {
                         while closing != 0 {
                             let l = closing.trailing_zeros() as usize;
                             closing &= closing - 1;
-                            if let Some(ray) = &mut rays[l] {
-                                ray.segments.close_run(runs.segment(l), runs.primary[l] != 0);
-                            }
+                                        segments[l].close_run(runs.segment(l), runs.primary[l] != 0);
                             (runs.open[l], runs.primary[l]) = (0, 0);
                         }
                         let open = _mm256_castsi256_ps(ldi(&runs.open));
@@ -1296,13 +1294,13 @@ mod v3 {
             while bits != 0 {
                 let l = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
-                let mut ray = rays[l].take().expect("an active lane");
                 let hit = MarchHit { t_hit: wave.t_hit[l], alpha_c: 1.0 - wave.transmittance[l], w_max: wave.w_max[l], samples: wave.samples[l] };
                 if MULTI && runs.open[l] != 0 {
-                    ray.segments.set_open(runs.segment(l), runs.primary[l] != 0);
+                    segments[l].set_open(runs.segment(l), runs.primary[l] != 0);
                 }
-                finish(ray.pixel, ray.o, ray.d, hit, ray.segments);
-                if !refill(l, &mut wave, &mut runs, &mut rays, &mut finish) {
+                let (o, d) = (Vec3::new(wave.o[0][l], wave.o[1][l], wave.o[2][l]), Vec3::new(wave.d[0][l], wave.d[1][l], wave.d[2][l]));
+                finish(pixel[l], o, d, hit, &mut segments[l]);
+                if !refill(l, &mut wave, &mut runs, &mut pixel, &mut finish) {
                     active &= !(1 << l);
                 }
             }
