@@ -132,6 +132,19 @@ impl LiveCells {
             .map(|h| h.into_iter().map(half::f16::to_bits).collect());
         Self { index, cells, values_f16 }
     }
+
+    /// What the AVX2 kernels' gathers rely on: one density channel, a live entry per index
+    /// cell, whole bricks, 32-bit offsets, and the f16 copy (if any) the size of the values.
+    /// (Every entry of `index` is −1 or a brick below `brick_count`, by construction.)
+    fn assert_fits(&self, density: &TextureCubes) {
+        assert!(
+            density.channels == 1
+                && self.index.len() == (density.grid as usize).pow(3)
+                && density.values.len() == density.brick_count() * density.brick_corners()
+                && density.values.len() < i32::MAX as usize
+                && self.values_f16.as_ref().is_none_or(|h| h.len() == density.values.len())
+        );
+    }
 }
 
 /// The front-to-back rule of DESIGN §3 over samples in order: transmittance, the heaviest
@@ -539,6 +552,7 @@ impl FastPrepared {
                 queries.push(Query { p_hit: o + m.t[q] * d, d, alpha_c: m.march.alpha_c, beta: m.beta[q], pixel: i as u32 });
             }
         };
+        let mut marched = false;
         #[cfg(target_arch = "x86_64")]
         if V && self.wavefront {
             #[allow(unsafe_code)]
@@ -555,31 +569,25 @@ impl FastPrepared {
                     });
                 }
             }
-            let t_marched = Instant::now();
-            stats.march_s = (t_marched - t).as_secs_f64();
-            self.shade::<V>(&queries, bg, &mut color, &mut alpha);
-            for (i, px) in rgba.chunks_exact_mut(4).enumerate() {
-                let c = color[i];
-                px.copy_from_slice(&[to_unorm8(c.x), to_unorm8(c.y), to_unorm8(c.z), to_unorm8(alpha[i])]);
-            }
-            stats.shade_s = t_marched.elapsed().as_secs_f64();
-            return stats;
+            marched = true;
         }
-        for i in 0..n {
-            let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
-            // No live cell's footprint covers the pixel: the ray takes no sample (and is not
-            // even made).
-            let (o, d) = if t_lo > t_hi { (Vec3::ZERO, Vec3::ZERO) } else { f.ray(i as u32 % w, y0 + i as u32 / w) };
-            let m = if t_lo > t_hi {
-                MultiHit::default()
-            } else if rule.one_hit() {
-                MultiHit::one(self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut ()))
-            } else {
-                let mut segments = Segments::new(rule.gap_steps * step);
-                let m = self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut segments);
-                segments.choose(m, rule)
-            };
-            take(i, o, d, m);
+        if !marched {
+            for i in 0..n {
+                let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
+                // No live cell's footprint covers the pixel: the ray takes no sample (and is not
+                // even made).
+                let (o, d) = if t_lo > t_hi { (Vec3::ZERO, Vec3::ZERO) } else { f.ray(i as u32 % w, y0 + i as u32 / w) };
+                let m = if t_lo > t_hi {
+                    MultiHit::default()
+                } else if rule.one_hit() {
+                    MultiHit::one(self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut ()))
+                } else {
+                    let mut segments = Segments::new(rule.gap_steps * step);
+                    let m = self.march::<V, _>(o, d, step, (t_lo, t_hi), settings, &mut segments);
+                    segments.choose(m, rule)
+                };
+                take(i, o, d, m);
+            }
         }
         let t_marched = Instant::now();
         stats.march_s = (t_marched - t).as_secs_f64();
@@ -741,6 +749,7 @@ impl FastPrepared {
 #[allow(unsafe_code)]
 mod v3 {
     use super::*;
+    use std::arch::x86_64::*;
 
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     #[allow(clippy::too_many_arguments)]
@@ -764,90 +773,28 @@ mod v3 {
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     pub(super) fn sigmas(density: &TextureCubes, cells: &LiveCells, k0: i32, n: usize, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH], u32) {
         let live = &cells.index;
-        use std::arch::x86_64::*;
-        let b = density.grid as i32;
-        let e = density.brick as i32 + 1;
-        let corners = density.brick_corners();
-        assert!(
-            density.channels == 1
-                && live.len() == (b as usize).pow(3)
-                && density.values.len() == density.brick_count() * corners
-                && density.values.len() < i32::MAX as usize
-                && cells.values_f16.as_ref().is_none_or(|h| h.len() == density.values.len())
-        );
-        let pow2 = density.brick.is_power_of_two();
-        // (Every entry of `live` is −1 or a brick below `brick_count`, by `LiveCells::new`.)
+        cells.assert_fits(density);
         let mut sigma = [0.0f32; BATCH];
         let mut out = [1.0f32; BATCH];
         let mut nonzero = 0u32;
-        let r = density.brick as f32;
-        let res = density.fine_res() as f32;
-        let (min, size) = (density.bounds.min, density.bounds.size());
         for half in 0..n.div_ceil(8) {
             let at = 8 * half;
-            // SAFETY: register arithmetic, and gathers of `live[x + b·(y + b·z)]` with each
-            // coordinate clamped to 0..b, then of `values[brick · corners + x + e·(y + e·z)]`
-            // with 0 ≤ brick < bricks (−1 replaced by 0, and masked out after) and each
-            // coordinate in 0..=r — or 32-bit reads of `values_f16` at the same index with
-            // x ≤ r − 1, so both u16s lie in the brick's row; stores into `[f32; BATCH]` at
-            // `at ≤ BATCH − 8`.
+            // SAFETY: register arithmetic; `cells8` on the live index (b³ entries, asserted),
+            // `density8` on its bricks with −1 replaced by 0 (as in `march_wave`); stores
+            // into `[f32; BATCH]` at `at ≤ BATCH − 8`.
             unsafe {
                 let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
                 let k = _mm256_add_epi32(_mm256_set1_epi32(k0 + at as i32), lane);
                 // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) / size · res.
                 let t = _mm256_add_ps(_mm256_set1_ps(t0), _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
-                let g = |a: usize, oa: f32, da: f32| {
-                    let p = _mm256_add_ps(_mm256_set1_ps(oa), _mm256_mul_ps(t, _mm256_set1_ps(da)));
-                    _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(p, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res))
-                };
-                let (gx, gy, gz) = (g(0, o.x, d.x), g(1, o.y, d.y), g(2, o.z, d.z));
-                // The cell: trunc(g / r) clamped to the grid (as `TextureCubes::sample`).
-                // (g · 1/r is g / r to the bit when r is a power of two.)
-                let over_r = |g: __m256| if pow2 { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
-                let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), _mm256_setzero_ps()), _mm256_set1_ps((b - 1) as f32));
-                let (cx, cy, cz) = (cell(gx), cell(gy), cell(gz));
-                let bi = _mm256_set1_epi32(b);
-                let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(cx), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(cy), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(cz)))));
-                let brick = _mm256_i32gather_epi32::<4>(live.as_ptr(), cell_at);
+                let g = fine8(density, [_mm256_set1_ps(o.x), _mm256_set1_ps(o.y), _mm256_set1_ps(o.z)], [_mm256_set1_ps(d.x), _mm256_set1_ps(d.y), _mm256_set1_ps(d.z)], t);
+                let (c, brick) = cells8(density, live, g);
                 let is_live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
                 if _mm256_movemask_epi8(is_live) == 0 {
                     continue;
                 }
-                let brick = _mm256_max_epi32(brick, _mm256_setzero_si256());
-                // u = clamp(g − cell·r, 0, r), base = min(trunc u, r − 1), f = u − base.
-                let split = |g: __m256, c: __m256| {
-                    let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g, _mm256_mul_ps(c, _mm256_set1_ps(r))), _mm256_setzero_ps()), _mm256_set1_ps(r));
-                    let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
-                    (_mm256_sub_ps(u, base), _mm256_cvttps_epi32(base))
-                };
-                let (fx, bx) = split(gx, cx);
-                let (fy, by) = split(gy, cy);
-                let (fz, bz) = split(gz, cz);
-                let ei = _mm256_set1_epi32(e);
-                let start = _mm256_mullo_epi32(brick, _mm256_set1_epi32(corners as i32));
-                let idx0 = _mm256_add_epi32(start, _mm256_add_epi32(bx, _mm256_mullo_epi32(ei, _mm256_add_epi32(by, _mm256_mullo_epi32(ei, bz)))));
+                let acc = density8(density, cells, g, c, _mm256_max_epi32(brick, _mm256_setzero_si256()));
                 let one = _mm256_set1_ps(1.0);
-                let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
-                let mut acc = _mm256_setzero_ps();
-                if let Some(h) = &cells.values_f16 {
-                    // Corners (0, y, z) and (1, y, z) as one 32-bit read of two f16s: split,
-                    // convert, and add in the same corner order as below.
-                    for pair in 0..4i32 {
-                        let (dy, dz) = (pair & 1, pair >> 1);
-                        let bits = _mm256_i32gather_epi32::<2>(h.as_ptr().cast(), _mm256_add_epi32(idx0, _mm256_set1_epi32(e * (dy + e * dz))));
-                        let (v0, v1) = f16_pairs(bits);
-                        let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
-                        acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
-                        acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
-                    }
-                } else {
-                    for corner in 0..8i32 {
-                        let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
-                        let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
-                        let v = _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz))));
-                        acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
-                    }
-                }
                 let acc = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
                 nonzero |= (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(acc, _mm256_setzero_ps())) as u32) << at;
                 _mm256_storeu_ps(sigma.as_mut_ptr().add(at), acc);
@@ -1076,25 +1023,14 @@ mod v3 {
         n: usize,
         mut finish: F,
     ) {
-        use std::arch::x86_64::*;
         let density = &p.asset.density;
         let cells = &p.live;
         let live_index = &cells.index;
-        let b = density.grid as i32;
-        let e = density.brick as i32 + 1;
-        let corners = density.brick_corners();
-        assert!(
-            density.channels == 1
-                && live_index.len() == (b as usize).pow(3)
-                && density.values.len() == density.brick_count() * corners
-                && density.values.len() < i32::MAX as usize
-                && cells.values_f16.as_ref().is_none_or(|h| h.len() == density.values.len())
-        );
+        cells.assert_fits(density);
         let width = f.intrinsics.width;
-        let pow2 = density.brick.is_power_of_two();
         let r = density.brick as f32;
         let res = density.fine_res() as f32;
-        let (min, size) = (density.bounds.min, density.bounds.size());
+        let size = density.bounds.size();
         let mut wave = Wave::default();
         // Each lane's pixel and closed segments (multi-hit; `finish` takes them and leaves
         // fresh ones), and the open segments.
@@ -1150,12 +1086,10 @@ mod v3 {
             // Lanes that have finished (or are idle): frozen until the refill below.
             let mut finished = !active & 0xff;
             for _ in 0..STEPS {
-                // SAFETY: register arithmetic; loads and stores of the lanes' 8-element arrays;
-                // gathers of `live[x + b·(y + b·z)]` with each coordinate clamped to 0..b,
-                // then of `values[brick · corners + x + e·(y + e·z)]` with 0 ≤ brick < bricks
-                // (−1 replaced by 0, and masked out after) and each coordinate in 0..=r — or
-                // 32-bit reads of `values_f16` at the same index with x ≤ r − 1 (as in
-                // `sigmas`).
+                // SAFETY: register arithmetic; loads and stores of the lanes' 8-element
+                // arrays; `cells8` on the live index (b³ entries, asserted), `density8` on
+                // its bricks with −1 replaced by 0 (every entry is −1 or a brick below
+                // `brick_count`, by `LiveCells::new`; the dead lanes are masked out after).
                 let stopped = unsafe {
                     let ld = |a: &[f32; 8]| _mm256_loadu_ps(a.as_ptr());
                     let ldi = |a: &[i32; 8]| _mm256_loadu_si256(a.as_ptr().cast());
@@ -1167,52 +1101,12 @@ mod v3 {
                     // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) / size · res (as `sigmas`).
                     let t0 = ld(&wave.t0);
                     let t = _mm256_add_ps(t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
-                    // (Closures called directly, not through `array::map`: those would not be
-                    // inlined.)
-                    let fine = |a: usize| {
-                        let pa = _mm256_add_ps(ld(&wave.o[a]), _mm256_mul_ps(t, ld(&wave.d[a])));
-                        _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(pa, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res))
-                    };
-                    let g = [fine(0), fine(1), fine(2)];
-                    let over_r = |g: __m256| if pow2 { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
-                    let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), zero), _mm256_set1_ps((b - 1) as f32));
-                    let c = [cell(g[0]), cell(g[1]), cell(g[2])];
-                    let bi = _mm256_set1_epi32(b);
-                    let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(c[0]), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(c[1]), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(c[2])))));
-                    let brick = _mm256_i32gather_epi32::<4>(live_index.as_ptr(), cell_at);
-                    let is_live = _mm256_andnot_si256(frozen, _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1)));
-                    let brick = _mm256_max_epi32(brick, _mm256_setzero_si256());
-                    // u = clamp(g − cell·r, 0, r), base = min(trunc u, r − 1), f = u − base.
-                    let split = |a: usize| {
-                        let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
-                        let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
-                        (_mm256_sub_ps(u, base), _mm256_cvttps_epi32(base))
-                    };
-                    let (fx, bx) = split(0);
-                    let (fy, by) = split(1);
-                    let (fz, bz) = split(2);
-                    let ei = _mm256_set1_epi32(e);
-                    let start = _mm256_mullo_epi32(brick, _mm256_set1_epi32(corners as i32));
-                    let idx0 = _mm256_add_epi32(start, _mm256_add_epi32(bx, _mm256_mullo_epi32(ei, _mm256_add_epi32(by, _mm256_mullo_epi32(ei, bz)))));
-                    let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
-                    let mut acc = zero;
-                    if let Some(h) = &cells.values_f16 {
-                        for pair in 0..4i32 {
-                            let (dy, dz) = (pair & 1, pair >> 1);
-                            let bits = _mm256_i32gather_epi32::<2>(h.as_ptr().cast(), _mm256_add_epi32(idx0, _mm256_set1_epi32(e * (dy + e * dz))));
-                            let (v0, v1) = f16_pairs(bits);
-                            let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
-                            acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
-                            acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
-                        }
-                    } else {
-                        for corner in 0..8i32 {
-                            let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
-                            let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
-                            let v = _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz))));
-                            acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
-                        }
-                    }
+                    let d = [ld(&wave.d[0]), ld(&wave.d[1]), ld(&wave.d[2])];
+                    let g = fine8(density, [ld(&wave.o[0]), ld(&wave.o[1]), ld(&wave.o[2])], d, t);
+                    let (c, brick) = cells8(density, live_index, g);
+                    let is_live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
+                    let is_live = _mm256_andnot_si256(frozen, is_live);
+                    let acc = density8(density, cells, g, c, _mm256_max_epi32(brick, _mm256_setzero_si256()));
                     let sigma = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
                     let ex = _mm256_blendv_ps(one, exp_neg8(_mm256_mul_ps(sigma, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
                     // The rule, as `Scan::take` on each lane: α = 1 − e, w = T·α, the heaviest
@@ -1305,6 +1199,91 @@ mod v3 {
                 }
             }
         }
+    }
+
+    /// The fine-grid coordinates `g = (o + t·d − min) / size · res` of 8 samples, as
+    /// [`TextureCubes::to_fine`] computes them (the same operations, so the same bits).
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn fine8(density: &TextureCubes, o: [__m256; 3], d: [__m256; 3], t: __m256) -> [__m256; 3] {
+        let (min, size, res) = (density.bounds.min, density.bounds.size(), density.fine_res() as f32);
+        let axis = |a: usize| {
+            let p = _mm256_add_ps(o[a], _mm256_mul_ps(t, d[a]));
+            _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(p, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res))
+        };
+        [axis(0), axis(1), axis(2)]
+    }
+
+    /// The index cells of fine-grid points `g` — trunc(g / r) clamped to the grid, as
+    /// `TextureCubes::sample` — and their live bricks (−1 where the cell is not live).
+    ///
+    /// # Safety
+    /// `live` has `grid³` entries; the CPU has x86-64-v3.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn cells8(density: &TextureCubes, live: &[i32], g: [__m256; 3]) -> ([__m256; 3], __m256i) {
+        let (b, r) = (density.grid as i32, density.brick as f32);
+        // (g · 1/r is g / r to the bit when r is a power of two.)
+        let over_r = |g: __m256| if density.brick.is_power_of_two() { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
+        let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), _mm256_setzero_ps()), _mm256_set1_ps((b - 1) as f32));
+        let c = [cell(g[0]), cell(g[1]), cell(g[2])];
+        let bi = _mm256_set1_epi32(b);
+        let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(c[0]), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(c[1]), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(c[2])))));
+        // SAFETY: each coordinate is clamped to 0..b, so `cell_at < b³ = live.len()`.
+        (c, unsafe { _mm256_i32gather_epi32::<4>(live.as_ptr(), cell_at) })
+    }
+
+    /// σ at fine-grid points `g` of cells `c` from their bricks (`brick ≥ 0`): the trilinear
+    /// sum of the brick's corners in `TextureCubes::sample`'s order (the same bits) — the
+    /// f16 values read two corners (x, x + 1) per 32-bit element where the cubes have them.
+    ///
+    /// # Safety
+    /// Every lane of `brick` is a brick of `density` (0 ≤ brick < bricks; `values` below 2³¹
+    /// entries); the CPU has x86-64-v3.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn density8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3], c: [__m256; 3], brick: __m256i) -> __m256 {
+        let r = density.brick as f32;
+        let e = density.brick as i32 + 1;
+        let zero = _mm256_setzero_ps();
+        // u = clamp(g − cell·r, 0, r), base = min(trunc u, r − 1), f = u − base.
+        let split = |a: usize| {
+            let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
+            let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
+            (_mm256_sub_ps(u, base), _mm256_cvttps_epi32(base))
+        };
+        let (fx, bx) = split(0);
+        let (fy, by) = split(1);
+        let (fz, bz) = split(2);
+        let ei = _mm256_set1_epi32(e);
+        let start = _mm256_mullo_epi32(brick, _mm256_set1_epi32(density.brick_corners() as i32));
+        let idx0 = _mm256_add_epi32(start, _mm256_add_epi32(bx, _mm256_mullo_epi32(ei, _mm256_add_epi32(by, _mm256_mullo_epi32(ei, bz)))));
+        let one = _mm256_set1_ps(1.0);
+        let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
+        let mut acc = zero;
+        // SAFETY (the gathers): `idx0 + corner offset` lies in the brick's corners (each
+        // coordinate of `base + corner` in 0..=r); in the paired reads x ≤ r − 1, so both
+        // u16s lie in the brick's row.
+        if let Some(h) = &cells.values_f16 {
+            // Corners (0, y, z) and (1, y, z) as one 32-bit read of two f16s: split,
+            // convert, and add in the same corner order as below.
+            for pair in 0..4i32 {
+                let (dy, dz) = (pair & 1, pair >> 1);
+                let bits = unsafe { _mm256_i32gather_epi32::<2>(h.as_ptr().cast(), _mm256_add_epi32(idx0, _mm256_set1_epi32(e * (dy + e * dz)))) };
+                let (v0, v1) = f16_pairs(bits);
+                let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
+                acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
+            }
+        } else {
+            for corner in 0..8i32 {
+                let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                let v = unsafe { _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz)))) };
+                acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
+            }
+        }
+        acc
     }
 
     /// The low and high f16 of each 32-bit lane, as f32.
