@@ -4,12 +4,13 @@
 //! - **Only where cells are live.** A prepass projects every live index cell (a brick with
 //!   some non-zero density) into the view: pixels outside every footprint take no sample,
 //!   and the rest march only the ray interval their footprints allow ([`Footprints`]).
-//! - **Eight rays at a time, one per vector lane** (`v3::march_wave`, AVX2). Each step
+//! - **Rays in vector lanes** (`v3::march_wave`, AVX2: 16 rays, two groups of 8 lanes
+//!   interleaved stage by stage). Each step
 //!   evaluates the next sample of the reference's lattice `t_k = t0 + (k+½)δ` on every lane's
 //!   ray (gathers for the cell's brick and the trilinear corners — the density's f16 values
 //!   read two corners at a time — and a vector `exp`) and applies the rule to it; a lane in
 //!   a dead cell jumps to where its ray leaves the cell, a finished lane takes the band's
-//!   next pixel. The eight rays' dependent reads overlap, and the steps have no branch on the
+//!   next pixel. The rays' dependent reads overlap, and the steps have no branch on the
 //!   data. Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
 //!   [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). Both give the
 //!   same frames to the bit (tested). σ at each sample is the reference's to the bit; the
@@ -73,7 +74,7 @@ struct FastPrepared {
     live: LiveCells,
     hash: PshBricks,
     diffuse: Option<DiffuseBytes>,
-    /// March the band's rays 8 at a time, one per lane ([`v3::march_wave`]), where the CPU
+    /// March the band's rays 16 at a time, one per lane ([`v3::march_wave`]), where the CPU
     /// has AVX2; else (or with `NEPHELE_MARCH=ray`) one ray at a time along its lattice.
     wavefront: bool,
 }
@@ -957,36 +958,36 @@ mod v3 {
         }
     }
 
-    /// The 8 lanes of [`march_wave`]: each one's ray, lattice and scan state.
+    /// The lanes of [`march_wave`]: each one's ray, lattice and scan state.
     #[derive(Default)]
     struct Wave {
-        o: [[f32; 8]; 3],
-        d: [[f32; 8]; 3],
+        o: [[f32; LANES]; 3],
+        d: [[f32; LANES]; 3],
         /// Per axis, `1 / (d[a] / size[a] · res)`: ray parameter per fine-grid unit (±∞
         /// where the ray is parallel to the axis).
-        t_per_fine: [[f32; 8]; 3],
+        t_per_fine: [[f32; LANES]; 3],
         /// The ray parameter where it enters the box (the lattice's origin).
-        t0: [f32; 8],
+        t0: [f32; LANES],
         /// The next lattice sample, and the end of the ray's samples.
-        k: [i32; 8],
-        k_end: [i32; 8],
-        transmittance: [f32; 8],
-        w_max: [f32; 8],
-        t_hit: [f32; 8],
-        samples: [u32; 8],
+        k: [i32; LANES],
+        k_end: [i32; LANES],
+        transmittance: [f32; LANES],
+        w_max: [f32; LANES],
+        t_hit: [f32; LANES],
+        samples: [u32; LANES],
     }
 
     /// The open segment of each lane's ray ([`Segments`]' open run, kept in vectors).
     #[derive(Default)]
     struct Runs {
         /// All ones where the lane has an open run, and where it holds the heaviest sample.
-        open: [i32; 8],
-        primary: [i32; 8],
-        weight: [f32; 8],
-        peak_w: [f32; 8],
-        peak_t: [f32; 8],
-        first_t: [f32; 8],
-        last_t: [f32; 8],
+        open: [i32; LANES],
+        primary: [i32; LANES],
+        weight: [f32; LANES],
+        peak_w: [f32; LANES],
+        peak_t: [f32; LANES],
+        first_t: [f32; LANES],
+        last_t: [f32; LANES],
     }
 
     impl Runs {
@@ -995,13 +996,17 @@ mod v3 {
         }
     }
 
+    /// Rays in flight in [`march_wave`]: two groups of 8 lanes, whose steps are interleaved
+    /// stage by stage so that one group's reads overlap the other's.
+    const LANES: usize = 16;
+
     /// Steps of [`march_wave`] between looks at which lanes have finished.
     const STEPS: usize = 4;
 
-    /// The band's rays marched 8 at a time, one per lane ("wavefront"): each step evaluates
-    /// one lattice sample of every lane's ray, so the lanes' dependent reads (cell, then
-    /// corners) overlap instead of queueing along one ray, and no sample past a ray's stop is
-    /// evaluated. A lane whose sample lies in a dead cell jumps to the first lattice sample
+    /// The band's rays marched 16 at a time, one per lane ("wavefront"; two groups of 8
+    /// lanes, interleaved stage by stage): each step evaluates one lattice sample of every
+    /// lane's ray, so the lanes' dependent reads (cell, then corners) overlap instead of
+    /// queueing along one ray, and no sample past a ray's stop is evaluated. A lane whose sample lies in a dead cell jumps to the first lattice sample
     /// at or after where its ray leaves the cell, less a margin of δ/16 (far above the
     /// rounding of the sample positions and of the jump), so every skipped sample lies in the
     /// dead cell: σ = 0, which changes nothing. Each lane takes its samples in order by the
@@ -1034,14 +1039,14 @@ mod v3 {
         let mut wave = Wave::default();
         // Each lane's pixel and closed segments (multi-hit; `finish` takes them and leaves
         // fresh ones), and the open segments.
-        let mut pixel = [0usize; 8];
-        let mut segments: [Segments; 8] = std::array::from_fn(|_| Segments::new(gap_t));
+        let mut pixel = [0usize; LANES];
+        let mut segments: [Segments; LANES] = std::array::from_fn(|_| Segments::new(gap_t));
         let mut no_segments = Segments::new(gap_t);
         let mut runs = Runs::default();
         let mut next_pixel = 0usize;
         // Gives `lane` the band's next pixel that has samples to take, finishing the ones
         // without on the way; false when the band has no pixel left.
-        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, pixel: &mut [usize; 8], finish: &mut F| -> bool {
+        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, pixel: &mut [usize; LANES], finish: &mut F| -> bool {
             while next_pixel < n {
                 let i = next_pixel;
                 next_pixel += 1;
@@ -1076,7 +1081,7 @@ mod v3 {
             false
         };
         let mut active = 0u32;
-        for lane in 0..8 {
+        for lane in 0..LANES {
             if refill(lane, &mut wave, &mut runs, &mut pixel, &mut finish) {
                 active |= 1 << lane;
             }
@@ -1084,103 +1089,22 @@ mod v3 {
         let margin = step / 16.0;
         while active != 0 {
             // Lanes that have finished (or are idle): frozen until the refill below.
-            let mut finished = !active & 0xff;
+            let mut finished = !active & ((1 << LANES) - 1);
             for _ in 0..STEPS {
-                // SAFETY: register arithmetic; loads and stores of the lanes' 8-element
-                // arrays; `cells8` on the live index (b³ entries, asserted), `density8` on
-                // its bricks with −1 replaced by 0 (every entry is −1 or a brick below
-                // `brick_count`, by `LiveCells::new`; the dead lanes are masked out after).
+                // SAFETY: `locate8` on the live index (b³ entries, asserted); `sigma8` on its
+                // bricks (every entry is −1 or a brick below `brick_count`, by
+                // `LiveCells::new`); lanes `at..at + 8` of the `LANES`-lane arrays.
                 let stopped = unsafe {
-                    let ld = |a: &[f32; 8]| _mm256_loadu_ps(a.as_ptr());
-                    let ldi = |a: &[i32; 8]| _mm256_loadu_si256(a.as_ptr().cast());
-                    let one = _mm256_set1_ps(1.0);
-                    let zero = _mm256_setzero_ps();
-                    // All ones in the lanes that are frozen.
-                    let frozen = _mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32(finished as i32), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256());
-                    let k = ldi(&wave.k);
-                    // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) / size · res (as `sigmas`).
-                    let t0 = ld(&wave.t0);
-                    let t = _mm256_add_ps(t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
-                    let d = [ld(&wave.d[0]), ld(&wave.d[1]), ld(&wave.d[2])];
-                    let g = fine8(density, [ld(&wave.o[0]), ld(&wave.o[1]), ld(&wave.o[2])], d, t);
-                    let (c, brick) = cells8(density, live_index, g);
-                    let is_live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
-                    let is_live = _mm256_andnot_si256(frozen, is_live);
-                    let acc = density8(density, cells, g, c, _mm256_max_epi32(brick, _mm256_setzero_si256()));
-                    let sigma = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
-                    let ex = _mm256_blendv_ps(one, exp_neg8(_mm256_mul_ps(sigma, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
-                    // The rule, as `Scan::take` on each lane: α = 1 − e, w = T·α, the heaviest
-                    // sample, T ·= 1 − α, then the stopping tests. With σ = 0 (dead cells and
-                    // frozen lanes), α = 0 and nothing changes, so every lane runs it; only
-                    // σ ≠ 0 samples count and can stop.
-                    let nonzero = _mm256_cmp_ps::<_CMP_NEQ_UQ>(sigma, zero);
-                    let alpha = _mm256_sub_ps(one, ex);
-                    let transmittance = ld(&wave.transmittance);
-                    let w = _mm256_mul_ps(transmittance, alpha);
-                    let w_max = ld(&wave.w_max);
-                    let new_max = _mm256_cmp_ps::<_CMP_GT_OQ>(w, w_max);
-                    let w_max = _mm256_blendv_ps(w_max, w, new_max);
-                    _mm256_storeu_ps(wave.w_max.as_mut_ptr(), w_max);
-                    _mm256_storeu_ps(wave.t_hit.as_mut_ptr(), _mm256_blendv_ps(ld(&wave.t_hit), t, new_max));
-                    let transmittance = _mm256_mul_ps(transmittance, _mm256_sub_ps(one, alpha));
-                    _mm256_storeu_ps(wave.transmittance.as_mut_ptr(), transmittance);
-                    let stop = _mm256_or_ps(
-                        _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_mul_ps(_mm256_set1_ps(s.stop_ratio), w_max)),
-                        _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_set1_ps(s.early_stop)),
-                    );
-                    let samples = _mm256_sub_epi32(_mm256_loadu_si256(wave.samples.as_ptr().cast()), _mm256_castps_si256(nonzero));
-                    _mm256_storeu_si256(wave.samples.as_mut_ptr().cast(), samples);
-                    if MULTI {
-                        // `Segments::sample` on each lane with w > 0 (not NaN): a sample past
-                        // the gap after the open run's peak closes the run (scalar: the closed
-                        // runs' bookkeeping), then the open run takes the sample.
-                        let valid = _mm256_andnot_ps(_mm256_castsi256_ps(frozen), _mm256_cmp_ps::<_CMP_GT_OQ>(w, zero));
-                        let open = _mm256_castsi256_ps(ldi(&runs.open));
-                        let past_gap = _mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_sub_ps(t, ld(&runs.peak_t)), _mm256_set1_ps(gap_t));
-                        let mut closing = _mm256_movemask_ps(_mm256_and_ps(_mm256_and_ps(valid, open), past_gap)) as u32;
-                        while closing != 0 {
-                            let l = closing.trailing_zeros() as usize;
-                            closing &= closing - 1;
-                                        segments[l].close_run(runs.segment(l), runs.primary[l] != 0);
-                            (runs.open[l], runs.primary[l]) = (0, 0);
-                        }
-                        let open = _mm256_castsi256_ps(ldi(&runs.open));
-                        let start = _mm256_andnot_ps(open, valid);
-                        let weight = _mm256_blendv_ps(ld(&runs.weight), zero, start);
-                        let peak_w = _mm256_blendv_ps(ld(&runs.peak_w), zero, start);
-                        let peak_t = _mm256_blendv_ps(ld(&runs.peak_t), t, start);
-                        _mm256_storeu_ps(runs.first_t.as_mut_ptr(), _mm256_blendv_ps(ld(&runs.first_t), t, start));
-                        _mm256_storeu_si256(runs.open.as_mut_ptr().cast(), _mm256_castps_si256(_mm256_or_ps(open, valid)));
-                        _mm256_storeu_ps(runs.weight.as_mut_ptr(), _mm256_blendv_ps(weight, _mm256_add_ps(weight, w), valid));
-                        _mm256_storeu_ps(runs.last_t.as_mut_ptr(), _mm256_blendv_ps(ld(&runs.last_t), t, valid));
-                        let heavier = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(w, peak_w));
-                        _mm256_storeu_ps(runs.peak_w.as_mut_ptr(), _mm256_blendv_ps(peak_w, w, heavier));
-                        _mm256_storeu_ps(runs.peak_t.as_mut_ptr(), _mm256_blendv_ps(peak_t, t, heavier));
-                        let primary = _mm256_or_ps(_mm256_castsi256_ps(ldi(&runs.primary)), _mm256_and_ps(valid, new_max));
-                        _mm256_storeu_si256(runs.primary.as_mut_ptr().cast(), _mm256_castps_si256(primary));
-                    }
-                    // The next sample: k + 1 in a live cell; in a dead one, the first lattice
-                    // sample at or after t_exit − margin, if that is further; a frozen lane
-                    // stays.
-                    let k1 = _mm256_add_epi32(k, _mm256_set1_epi32(1));
-                    let exit = |a: usize| {
-                        let t_per = ld(&wave.t_per_fine[a]);
-                        let up = _mm256_cmp_ps::<_CMP_GT_OQ>(t_per, zero);
-                        let bound = _mm256_mul_ps(_mm256_add_ps(c[a], _mm256_and_ps(up, one)), _mm256_set1_ps(r));
-                        // (bound − g)·t_per: ≥ 0, or NaN for a parallel ray (0·∞), which
-                        // `min_ps` drops in favour of its second operand.
-                        _mm256_mul_ps(_mm256_sub_ps(bound, g[a]), t_per)
-                    };
-                    let dt = _mm256_min_ps(exit(2), _mm256_min_ps(exit(1), exit(0)));
-                    let ks = _mm256_ceil_ps(_mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(_mm256_sub_ps(_mm256_add_ps(t, dt), _mm256_set1_ps(margin)), t0), _mm256_set1_ps(1.0 / step)), _mm256_set1_ps(0.5)));
-                    // min(k_end, ks) keeps a NaN (its second operand); max(·, k + 1) then
-                    // takes k + 1 for it.
-                    let k_end = ldi(&wave.k_end);
-                    let ks = _mm256_max_ps(_mm256_min_ps(_mm256_cvtepi32_ps(k_end), ks), _mm256_cvtepi32_ps(k1));
-                    let k_next = _mm256_blendv_epi8(_mm256_blendv_epi8(_mm256_cvttps_epi32(ks), k1, is_live), k, frozen);
-                    _mm256_storeu_si256(wave.k.as_mut_ptr().cast(), k_next);
-                    let past_end = !(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(k_end, k_next))) as u32) & 0xff;
-                    (_mm256_movemask_ps(_mm256_and_ps(stop, nonzero)) as u32) | past_end
+                    let frozen = |at: usize| _mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32((finished >> at) as i32), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256());
+                    let (frozen0, frozen1) = (frozen(0), frozen(8));
+                    // The two groups stage by stage: both cell gathers, then both corner
+                    // gathers and exps, then both rules.
+                    let at0 = locate8(density, live_index, &wave, 0, step);
+                    let at1 = locate8(density, live_index, &wave, 8, step);
+                    let s0 = sigma8(density, cells, &at0, frozen0, step);
+                    let s1 = sigma8(density, cells, &at1, frozen1, step);
+                    let rule = Rule { s, step, gap_t, margin, r };
+                    rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 0, &at0, s0, frozen0) | rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 8, &at1, s1, frozen1)
                 };
                 finished |= stopped;
             }
@@ -1198,6 +1122,149 @@ mod v3 {
                     active &= !(1 << l);
                 }
             }
+        }
+    }
+
+
+    /// A group's samples of one step: where they are and in which cell (`brick` −1 where
+    /// the cell is not live).
+    struct Located {
+        k: __m256i,
+        t0: __m256,
+        t: __m256,
+        g: [__m256; 3],
+        c: [__m256; 3],
+        brick: __m256i,
+    }
+
+    /// The next samples of lanes `at..at + 8`: t = t0 + (k + ½)·δ, their fine-grid position
+    /// (as `sigmas`) and cell.
+    ///
+    /// # Safety
+    /// As [`cells8`]; `at + 8 ≤ LANES`.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn locate8(density: &TextureCubes, live: &[i32], wave: &Wave, at: usize, step: f32) -> Located {
+        // SAFETY: 8-lane loads at `at ≤ LANES − 8`; `cells8` as the caller guarantees.
+        unsafe {
+            let ld = |a: &[f32; LANES]| _mm256_loadu_ps(a.as_ptr().add(at));
+            let k = _mm256_loadu_si256(wave.k.as_ptr().add(at).cast());
+            let t0 = ld(&wave.t0);
+            let t = _mm256_add_ps(t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
+            let g = fine8(density, [ld(&wave.o[0]), ld(&wave.o[1]), ld(&wave.o[2])], [ld(&wave.d[0]), ld(&wave.d[1]), ld(&wave.d[2])], t);
+            let (c, brick) = cells8(density, live, g);
+            Located { k, t0, t, g, c, brick }
+        }
+    }
+
+    /// σ and e = e^(−σδ) of located samples (σ = 0, e = 1 in dead cells and frozen lanes),
+    /// and which lanes read a live brick.
+    ///
+    /// # Safety
+    /// As [`density8`] for the non-negative bricks of `at`.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn sigma8(density: &TextureCubes, cells: &LiveCells, at: &Located, frozen: __m256i, step: f32) -> (__m256i, __m256, __m256) {
+        let is_live = _mm256_andnot_si256(frozen, _mm256_cmpgt_epi32(at.brick, _mm256_set1_epi32(-1)));
+        // SAFETY: −1 (a dead cell) is read as brick 0 and masked out below.
+        let acc = unsafe { density8(density, cells, at.g, at.c, _mm256_max_epi32(at.brick, _mm256_setzero_si256())) };
+        let sigma = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
+        let ex = _mm256_blendv_ps(_mm256_set1_ps(1.0), exp_neg8(_mm256_mul_ps(sigma, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
+        (is_live, sigma, ex)
+    }
+
+    /// The march's constants for [`rule8`].
+    struct Rule<'a> {
+        s: &'a RenderSettings,
+        step: f32,
+        gap_t: f32,
+        margin: f32,
+        /// Fine cells per index cell.
+        r: f32,
+    }
+
+    /// The rule on lanes `at..at + 8` for their samples `(is_live, σ, e)`, as `Scan::take`
+    /// on each lane: α = 1 − e, w = T·α, the heaviest sample, T ·= 1 − α, then the stopping
+    /// tests. With σ = 0 (dead cells and frozen lanes), α = 0 and nothing changes, so every
+    /// lane runs it; only σ ≠ 0 samples count and can stop. Then each lane's next sample:
+    /// k + 1 in a live cell; in a dead one, the first lattice sample at or after
+    /// t_exit − margin, if that is further; a frozen lane stays. Returns the lanes (bits
+    /// `at..at + 8`) that stopped or have no sample left.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn rule8<const MULTI: bool>(rule: &Rule<'_>, wave: &mut Wave, runs: &mut Runs, segments: &mut [Segments; LANES], at: usize, l: &Located, (is_live, sigma, ex): (__m256i, __m256, __m256), frozen: __m256i) -> u32 {
+        let s = rule.s;
+        let (one, zero) = (_mm256_set1_ps(1.0), _mm256_setzero_ps());
+        // SAFETY: 8-lane loads and stores at `at ≤ LANES − 8` of `LANES`-lane arrays.
+        unsafe {
+            let ld = |a: &[f32; LANES]| _mm256_loadu_ps(a.as_ptr().add(at));
+            let ldi = |a: &[i32; LANES]| _mm256_loadu_si256(a.as_ptr().add(at).cast());
+            let nonzero = _mm256_cmp_ps::<_CMP_NEQ_UQ>(sigma, zero);
+            let alpha = _mm256_sub_ps(one, ex);
+            let transmittance = ld(&wave.transmittance);
+            let w = _mm256_mul_ps(transmittance, alpha);
+            let w_max = ld(&wave.w_max);
+            let new_max = _mm256_cmp_ps::<_CMP_GT_OQ>(w, w_max);
+            let w_max = _mm256_blendv_ps(w_max, w, new_max);
+            _mm256_storeu_ps(wave.w_max.as_mut_ptr().add(at), w_max);
+            _mm256_storeu_ps(wave.t_hit.as_mut_ptr().add(at), _mm256_blendv_ps(ld(&wave.t_hit), l.t, new_max));
+            let transmittance = _mm256_mul_ps(transmittance, _mm256_sub_ps(one, alpha));
+            _mm256_storeu_ps(wave.transmittance.as_mut_ptr().add(at), transmittance);
+            let stop = _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_mul_ps(_mm256_set1_ps(s.stop_ratio), w_max)),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_set1_ps(s.early_stop)),
+            );
+            let samples = _mm256_sub_epi32(_mm256_loadu_si256(wave.samples.as_ptr().add(at).cast()), _mm256_castps_si256(nonzero));
+            _mm256_storeu_si256(wave.samples.as_mut_ptr().add(at).cast(), samples);
+            if MULTI {
+                // `Segments::sample` on each lane with w > 0 (not NaN): a sample past the gap
+                // after the open run's peak closes the run (scalar: the closed runs'
+                // bookkeeping), then the open run takes the sample.
+                let t = l.t;
+                let valid = _mm256_andnot_ps(_mm256_castsi256_ps(frozen), _mm256_cmp_ps::<_CMP_GT_OQ>(w, zero));
+                let open = _mm256_castsi256_ps(ldi(&runs.open));
+                let past_gap = _mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_sub_ps(t, ld(&runs.peak_t)), _mm256_set1_ps(rule.gap_t));
+                let mut closing = _mm256_movemask_ps(_mm256_and_ps(_mm256_and_ps(valid, open), past_gap)) as u32;
+                while closing != 0 {
+                    let lane = at + closing.trailing_zeros() as usize;
+                    closing &= closing - 1;
+                    segments[lane].close_run(runs.segment(lane), runs.primary[lane] != 0);
+                    (runs.open[lane], runs.primary[lane]) = (0, 0);
+                }
+                let open = _mm256_castsi256_ps(ldi(&runs.open));
+                let start = _mm256_andnot_ps(open, valid);
+                let weight = _mm256_blendv_ps(ld(&runs.weight), zero, start);
+                let peak_w = _mm256_blendv_ps(ld(&runs.peak_w), zero, start);
+                let peak_t = _mm256_blendv_ps(ld(&runs.peak_t), t, start);
+                _mm256_storeu_ps(runs.first_t.as_mut_ptr().add(at), _mm256_blendv_ps(ld(&runs.first_t), t, start));
+                _mm256_storeu_si256(runs.open.as_mut_ptr().add(at).cast(), _mm256_castps_si256(_mm256_or_ps(open, valid)));
+                _mm256_storeu_ps(runs.weight.as_mut_ptr().add(at), _mm256_blendv_ps(weight, _mm256_add_ps(weight, w), valid));
+                _mm256_storeu_ps(runs.last_t.as_mut_ptr().add(at), _mm256_blendv_ps(ld(&runs.last_t), t, valid));
+                let heavier = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(w, peak_w));
+                _mm256_storeu_ps(runs.peak_w.as_mut_ptr().add(at), _mm256_blendv_ps(peak_w, w, heavier));
+                _mm256_storeu_ps(runs.peak_t.as_mut_ptr().add(at), _mm256_blendv_ps(peak_t, t, heavier));
+                let primary = _mm256_or_ps(_mm256_castsi256_ps(ldi(&runs.primary)), _mm256_and_ps(valid, new_max));
+                _mm256_storeu_si256(runs.primary.as_mut_ptr().add(at).cast(), _mm256_castps_si256(primary));
+            }
+            let k1 = _mm256_add_epi32(l.k, _mm256_set1_epi32(1));
+            let exit = |a: usize| {
+                let t_per = ld(&wave.t_per_fine[a]);
+                let up = _mm256_cmp_ps::<_CMP_GT_OQ>(t_per, zero);
+                let bound = _mm256_mul_ps(_mm256_add_ps(l.c[a], _mm256_and_ps(up, one)), _mm256_set1_ps(rule.r));
+                // (bound − g)·t_per: ≥ 0, or NaN for a parallel ray (0·∞), which `min_ps`
+                // drops in favour of its second operand.
+                _mm256_mul_ps(_mm256_sub_ps(bound, l.g[a]), t_per)
+            };
+            let dt = _mm256_min_ps(exit(2), _mm256_min_ps(exit(1), exit(0)));
+            let ks = _mm256_ceil_ps(_mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(_mm256_sub_ps(_mm256_add_ps(l.t, dt), _mm256_set1_ps(rule.margin)), l.t0), _mm256_set1_ps(1.0 / rule.step)), _mm256_set1_ps(0.5)));
+            // min(k_end, ks) keeps a NaN (its second operand); max(·, k + 1) then takes k + 1.
+            let k_end = ldi(&wave.k_end);
+            let ks = _mm256_max_ps(_mm256_min_ps(_mm256_cvtepi32_ps(k_end), ks), _mm256_cvtepi32_ps(k1));
+            let k_next = _mm256_blendv_epi8(_mm256_blendv_epi8(_mm256_cvttps_epi32(ks), k1, is_live), l.k, frozen);
+            _mm256_storeu_si256(wave.k.as_mut_ptr().add(at).cast(), k_next);
+            let past_end = !(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(k_end, k_next))) as u32) & 0xff;
+            ((_mm256_movemask_ps(_mm256_and_ps(stop, nonzero)) as u32) | past_end) << at
         }
     }
 
