@@ -963,7 +963,7 @@ mod v3 {
     struct Wave {
         o: [[f32; LANES]; 3],
         d: [[f32; LANES]; 3],
-        /// Per axis, `1 / (d[a] / size[a] · res)`: ray parameter per fine-grid unit (±∞
+        /// Per axis, `(size[a] / res) / d[a]`: ray parameter per fine-grid unit (+∞
         /// where the ray is parallel to the axis).
         t_per_fine: [[f32; LANES]; 3],
         /// The ray parameter where it enters the box (the lattice's origin).
@@ -1043,46 +1043,58 @@ mod v3 {
         let mut segments: [Segments; LANES] = std::array::from_fn(|_| Segments::new(gap_t));
         let mut no_segments = Segments::new(gap_t);
         let mut runs = Runs::default();
-        let mut next_pixel = 0usize;
-        // Gives `lane` the band's next pixel that has samples to take, finishing the ones
-        // without on the way; false when the band has no pixel left.
-        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, pixel: &mut [usize; LANES], finish: &mut F| -> bool {
-            while next_pixel < n {
-                let i = next_pixel;
-                next_pixel += 1;
-                let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
-                if t_lo > t_hi {
-                    finish(i, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), &mut no_segments);
-                    continue;
-                }
-                let (o, d) = f.ray(i as u32 % width, y0 + i as u32 / width);
-                // The lattice samples in [t_begin, t_end), as `FastPrepared::march` counts them.
-                let lattice = clip_ray(&density.bounds, o, d).and_then(|(t0, t1)| {
-                    let (t_begin, t_end) = (t0.max(t_lo), t1.min(t_hi));
-                    let k_first = ((t_begin - t0) / step - 0.5).ceil().max(0.0) as i32;
-                    let k_end = ((t_end - t0) / step - 0.5).ceil() as i32;
-                    (t_begin < t_end && k_first < k_end).then_some((t0, k_first, k_end))
-                });
-                let Some((t0, k_first, k_end)) = lattice else {
-                    finish(i, o, d, MarchHit::default(), &mut no_segments);
-                    continue;
-                };
-                for a in 0..3 {
-                    (wave.o[a][lane], wave.d[a][lane]) = (o[a], d[a]);
-                    let rate = d[a] / size[a] * res;
-                    wave.t_per_fine[a][lane] = if rate == 0.0 { f32::INFINITY } else { 1.0 / rate };
-                }
-                (wave.t0[lane], wave.k[lane], wave.k_end[lane]) = (t0, k_first, k_end);
-                (wave.transmittance[lane], wave.w_max[lane], wave.t_hit[lane], wave.samples[lane]) = (1.0, 0.0, 0.0, 0);
-                (runs.open[lane], runs.primary[lane]) = (0, 0);
-                pixel[lane] = i;
-                return true;
+        // The band's rays, made and clipped in one pass before the march (independent of
+        // each other, so their divisions and square roots overlap); pixels without samples
+        // are finished here.
+        struct Start {
+            pixel: usize,
+            o: Vec3,
+            d: Vec3,
+            t0: f32,
+            k_first: i32,
+            k_end: i32,
+        }
+        let mut starts = Vec::with_capacity(n);
+        for i in 0..n {
+            let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
+            if t_lo > t_hi {
+                finish(i, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), &mut no_segments);
+                continue;
             }
-            false
+            let (o, d) = f.ray(i as u32 % width, y0 + i as u32 / width);
+            // The lattice samples in [t_begin, t_end), as `FastPrepared::march` counts them.
+            let lattice = clip_ray(&density.bounds, o, d).and_then(|(t0, t1)| {
+                let (t_begin, t_end) = (t0.max(t_lo), t1.min(t_hi));
+                let k_first = ((t_begin - t0) / step - 0.5).ceil().max(0.0) as i32;
+                let k_end = ((t_end - t0) / step - 0.5).ceil() as i32;
+                (t_begin < t_end && k_first < k_end).then_some((t0, k_first, k_end))
+            });
+            match lattice {
+                Some((t0, k_first, k_end)) => starts.push(Start { pixel: i, o, d, t0, k_first, k_end }),
+                None => finish(i, o, d, MarchHit::default(), &mut no_segments),
+            }
+        }
+        let mut starts = starts.into_iter();
+        // Gives `lane` the band's next ray; false when there is none left.
+        let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, pixel: &mut [usize; LANES]| -> bool {
+            let Some(Start { pixel: i, o, d, t0, k_first, k_end }) = starts.next() else { return false };
+            for a in 0..3 {
+                (wave.o[a][lane], wave.d[a][lane]) = (o[a], d[a]);
+            }
+            // Ray parameter per fine-grid unit along each axis (for the dead-cell jumps).
+            let t_per_fine = (size / res) / d;
+            for a in 0..3 {
+                wave.t_per_fine[a][lane] = if d[a] == 0.0 { f32::INFINITY } else { t_per_fine[a] };
+            }
+            (wave.t0[lane], wave.k[lane], wave.k_end[lane]) = (t0, k_first, k_end);
+            (wave.transmittance[lane], wave.w_max[lane], wave.t_hit[lane], wave.samples[lane]) = (1.0, 0.0, 0.0, 0);
+            (runs.open[lane], runs.primary[lane]) = (0, 0);
+            pixel[lane] = i;
+            true
         };
         let mut active = 0u32;
         for lane in 0..LANES {
-            if refill(lane, &mut wave, &mut runs, &mut pixel, &mut finish) {
+            if refill(lane, &mut wave, &mut runs, &mut pixel) {
                 active |= 1 << lane;
             }
         }
@@ -1118,7 +1130,7 @@ mod v3 {
                 }
                 let (o, d) = (Vec3::new(wave.o[0][l], wave.o[1][l], wave.o[2][l]), Vec3::new(wave.d[0][l], wave.d[1][l], wave.d[2][l]));
                 finish(pixel[l], o, d, hit, &mut segments[l]);
-                if !refill(l, &mut wave, &mut runs, &mut pixel, &mut finish) {
+                if !refill(l, &mut wave, &mut runs, &mut pixel) {
                     active &= !(1 << l);
                 }
             }
