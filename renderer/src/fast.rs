@@ -189,6 +189,18 @@ impl Scan {
     }
 }
 
+/// A ray's lattice samples inside `span` (a ray-parameter interval): the box entry `t0` (the
+/// lattice's origin) and the samples `k_first..k_end` with `t_k` in
+/// [max(t0, span.0), min(t1, span.1)), counted as the reference counts a cell's; `None`
+/// without any.
+fn lattice(density: &TextureCubes, o: Vec3, d: Vec3, span: (f32, f32), step: f32) -> Option<(f32, i32, i32)> {
+    let (t0, t1) = clip_ray(&density.bounds, o, d)?;
+    let (t_begin, t_end) = (t0.max(span.0), t1.min(span.1));
+    let k_first = ((t_begin - t0) / step - 0.5).ceil().max(0.0) as i32;
+    let k_end = ((t_end - t0) / step - 0.5).ceil() as i32;
+    (t_begin < t_end && k_first < k_end).then_some((t0, k_first, k_end))
+}
+
 /// The perfect spatial hash's stored vertices rearranged for lookups by position: the
 /// vertex grid cut into bricks of [`PshBricks::BRICK`]³ cells, each brick a table of its
 /// `(BRICK + 1)³` corner vertices' ids (or [`PshBricks::ABSENT`]), and the vertices' features
@@ -720,16 +732,8 @@ impl FastPrepared {
     /// sees the samples one by one, in order).
     #[inline(always)]
     fn march<const V: bool, T: Tracker>(&self, o: Vec3, d: Vec3, step: f32, span: (f32, f32), s: &RenderSettings, tracker: &mut T) -> MarchHit {
-        let density = &self.asset.density;
         let mut out = MarchHit::default();
-        let Some((t0, t1)) = clip_ray(&density.bounds, o, d) else { return out };
-        let (t_begin, t_end) = (t0.max(span.0), t1.min(span.1));
-        if t_begin >= t_end {
-            return out;
-        }
-        // The lattice samples in [t_begin, t_end), counted as the reference counts a cell's.
-        let k_first = ((t_begin - t0) / step - 0.5).ceil().max(0.0) as i32;
-        let k_end = ((t_end - t0) / step - 0.5).ceil() as i32;
+        let Some((t0, k_first, k_end)) = lattice(&self.asset.density, o, d, span, step) else { return out };
         let mut scan = Scan { transmittance: 1.0, w_max: 0.0, t_hit: 0.0, samples: 0, done: false };
         let mut k0 = k_first;
         while k0 < k_end && !scan.done {
@@ -1062,14 +1066,7 @@ mod v3 {
                 continue;
             }
             let (o, d) = f.ray(i as u32 % width, y0 + i as u32 / width);
-            // The lattice samples in [t_begin, t_end), as `FastPrepared::march` counts them.
-            let lattice = clip_ray(&density.bounds, o, d).and_then(|(t0, t1)| {
-                let (t_begin, t_end) = (t0.max(t_lo), t1.min(t_hi));
-                let k_first = ((t_begin - t0) / step - 0.5).ceil().max(0.0) as i32;
-                let k_end = ((t_end - t0) / step - 0.5).ceil() as i32;
-                (t_begin < t_end && k_first < k_end).then_some((t0, k_first, k_end))
-            });
-            match lattice {
+            match lattice(density, o, d, (t_lo, t_hi), step) {
                 Some((t0, k_first, k_end)) => starts.push(Start { pixel: i, o, d, t0, k_first, k_end }),
                 None => finish(i, o, d, MarchHit::default(), &mut no_segments),
             }
@@ -1098,7 +1095,7 @@ mod v3 {
                 active |= 1 << lane;
             }
         }
-        let margin = step / 16.0;
+        let rule = Rule { s, step, gap_t, margin: step / 16.0, r };
         while active != 0 {
             // Lanes that have finished (or are idle): frozen until the refill below.
             let mut finished = !active & ((1 << LANES) - 1);
@@ -1115,7 +1112,6 @@ mod v3 {
                     let at1 = locate8(density, live_index, &wave, 8, step);
                     let s0 = sigma8(density, cells, &at0, frozen0, step);
                     let s1 = sigma8(density, cells, &at1, frozen1, step);
-                    let rule = Rule { s, step, gap_t, margin, r };
                     rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 0, &at0, s0, frozen0) | rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 8, &at1, s1, frozen1)
                 };
                 finished |= stopped;
@@ -1136,7 +1132,6 @@ mod v3 {
             }
         }
     }
-
 
     /// A group's samples of one step: where they are and in which cell (`brick` −1 where
     /// the cell is not live).
