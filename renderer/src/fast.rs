@@ -9,7 +9,8 @@
 //!   evaluates the next sample of the reference's lattice `t_k = t0 + (k+½)δ` on every lane's
 //!   ray (gathers for the cell's brick and the trilinear corners — the density's f16 values
 //!   read two corners at a time — and a vector `exp`) and applies the rule to it; a lane in
-//!   a dead cell jumps to where its ray leaves the cell, a finished lane takes the band's
+//!   a dead cell jumps to where its ray leaves the largest aligned dead block of cells
+//!   around it (up to 8 cells per side), a finished lane takes the band's
 //!   next pixel. The rays' dependent reads overlap, and the steps have no branch on the
 //!   data. Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
 //!   [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). Both give the
@@ -47,6 +48,8 @@ use crate::{
 pub const BATCH: usize = 16;
 /// Rows of one work item.
 const BAND_ROWS: u32 = 4;
+/// Largest dead block the wavefront march jumps across: 2^3 = 8 index cells per side.
+const MAX_SKIP_LEVEL: i32 = 3;
 
 /// The fast CPU backend (see the module notes); `nephele --backend cpu`.
 #[derive(Debug, Default, Clone, Copy)]
@@ -102,9 +105,11 @@ impl DiffuseBytes {
 }
 
 /// The index grid with only live cells: bricks that have some non-zero density (the others'
-/// samples have α = 0 and change nothing). Every entry is −1 or a brick the density holds.
+/// samples have α = 0 and change nothing). Every entry is negative or a brick the density
+/// holds.
 struct LiveCells {
-    /// `b³`, x fastest: the brick, or −1.
+    /// `b³`, x fastest: the brick, or −1 − L for a dead cell whose block of 2^L cells per
+    /// side is dead (see [`LiveCells::new`]).
     index: Vec<i32>,
     cells: Vec<UVec3>,
     /// The density values as the f16 bits they are stored as (`None` if some value is not
@@ -127,6 +132,31 @@ impl LiveCells {
                 *brick = -1;
             }
         }
+        // Dead cells say how far around them is dead: −1 − L where the aligned block of
+        // 2^L × 2^L × 2^L cells holding the cell (cut at the grid's far faces) has no live
+        // cell, L ≤ MAX_SKIP_LEVEL; the wavefront march jumps to where its ray leaves that block.
+        let g = d.grid as usize;
+        let mut live: Vec<bool> = index.iter().map(|&b| b >= 0).collect();
+        let mut side = g;
+        for level in 1..=MAX_SKIP_LEVEL {
+            // `live` at level − 1 (blocks of 2^(level − 1) cells, `side`³ of them) → level.
+            let up = side.div_ceil(2);
+            let mut coarse = vec![false; up * up * up];
+            for z in 0..side {
+                for y in 0..side {
+                    for x in 0..side {
+                        coarse[x / 2 + up * (y / 2 + up * (z / 2))] |= live[x + side * (y + side * z)];
+                    }
+                }
+            }
+            for (i, brick) in index.iter_mut().enumerate() {
+                let (x, y, z) = ((i % g) >> level, ((i / g) % g) >> level, (i / (g * g)) >> level);
+                if *brick == -level && !coarse[x + up * (y + up * z)] {
+                    *brick = -1 - level;
+                }
+            }
+            (live, side) = (coarse, up);
+        }
         let values_f16 = (d.channels == 1)
             .then(|| d.values.iter().map(|&v| half::f16::from_f32(v)).collect::<Vec<_>>())
             .filter(|h| h.iter().zip(&d.values).all(|(h, v)| h.to_f32().to_bits() == v.to_bits()))
@@ -136,7 +166,7 @@ impl LiveCells {
 
     /// What the AVX2 kernels' gathers rely on: one density channel, a live entry per index
     /// cell, whole bricks, 32-bit offsets, and the f16 copy (if any) the size of the values.
-    /// (Every entry of `index` is −1 or a brick below `brick_count`, by construction.)
+    /// (Every entry of `index` is negative or a brick below `brick_count`, by construction.)
     fn assert_fits(&self, density: &TextureCubes) {
         assert!(
             density.channels == 1
@@ -785,7 +815,7 @@ mod v3 {
         for half in 0..n.div_ceil(8) {
             let at = 8 * half;
             // SAFETY: register arithmetic; `cells8` on the live index (b³ entries, asserted),
-            // `density8` on its bricks with −1 replaced by 0 (as in `march_wave`); stores
+            // `density8` on its bricks with negative entries replaced by 0 (as in `march_wave`); stores
             // into `[f32; BATCH]` at `at ≤ BATCH − 8`.
             unsafe {
                 let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
@@ -1010,10 +1040,11 @@ mod v3 {
     /// The band's rays marched 16 at a time, one per lane ("wavefront"; two groups of 8
     /// lanes, interleaved stage by stage): each step evaluates one lattice sample of every
     /// lane's ray, so the lanes' dependent reads (cell, then corners) overlap instead of
-    /// queueing along one ray, and no sample past a ray's stop is evaluated. A lane whose sample lies in a dead cell jumps to the first lattice sample
-    /// at or after where its ray leaves the cell, less a margin of δ/16 (far above the
+    /// queueing along one ray, and no sample past a ray's stop is evaluated. A lane whose
+    /// sample lies in a dead cell jumps to the first lattice sample at or after where its ray
+    /// leaves the cell's dead block ([`LiveCells`]), less a margin of δ/16 (far above the
     /// rounding of the sample positions and of the jump), so every skipped sample lies in the
-    /// dead cell: σ = 0, which changes nothing. Each lane takes its samples in order by the
+    /// dead block: σ = 0, which changes nothing. Each lane takes its samples in order by the
     /// reference's rule, so every ray's result is [`FastPrepared::march`]'s. The steps have no
     /// branch on the data: lanes that finish are frozen, and every [`STEPS`] steps they take
     /// the band's next pixels. `finish(pixel, o, d, hit, tracker)` gets every pixel of the
@@ -1036,10 +1067,7 @@ mod v3 {
         let cells = &p.live;
         let live_index = &cells.index;
         cells.assert_fits(density);
-        let width = f.intrinsics.width;
         let r = density.brick as f32;
-        let res = density.fine_res() as f32;
-        let size = density.bounds.size();
         let mut wave = Wave::default();
         // Each lane's pixel and closed segments (multi-hit; `finish` takes them and leaves
         // fresh ones), and the open segments.
@@ -1047,41 +1075,30 @@ mod v3 {
         let mut segments: [Segments; LANES] = std::array::from_fn(|_| Segments::new(gap_t));
         let mut no_segments = Segments::new(gap_t);
         let mut runs = Runs::default();
-        // The band's rays, made and clipped in one pass before the march (independent of
-        // each other, so their divisions and square roots overlap); pixels without samples
-        // are finished here.
-        struct Start {
-            pixel: usize,
-            o: Vec3,
-            d: Vec3,
-            t0: f32,
-            k_first: i32,
-            k_end: i32,
-        }
+        // The band's rays, made and clipped 8 at a time before the march ([`rays8`]); pixels
+        // without samples are finished here.
         let mut starts = Vec::with_capacity(n);
-        for i in 0..n {
-            let (t_lo, t_hi) = bounds.map_or((f32::NEG_INFINITY, f32::INFINITY), |b| (b.t_lo[i], b.t_hi[i]));
-            if t_lo > t_hi {
-                finish(i, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), &mut no_segments);
-                continue;
-            }
-            let (o, d) = f.ray(i as u32 % width, y0 + i as u32 / width);
-            match lattice(density, o, d, (t_lo, t_hi), step) {
-                Some((t0, k_first, k_end)) => starts.push(Start { pixel: i, o, d, t0, k_first, k_end }),
-                None => finish(i, o, d, MarchHit::default(), &mut no_segments),
+        for i0 in (0..n).step_by(8) {
+            let c = rays8(f, density, bounds, y0, i0, n, step);
+            for l in 0..8.min(n - i0) {
+                let (o, d) = (Vec3::new(c.o[0][l], c.o[1][l], c.o[2][l]), Vec3::new(c.d[0][l], c.d[1][l], c.d[2][l]));
+                if c.start >> l & 1 != 0 {
+                    let t_per_fine = [c.t_per_fine[0][l], c.t_per_fine[1][l], c.t_per_fine[2][l]];
+                    starts.push(Start { pixel: i0 + l, o, d, t_per_fine, t0: c.t0[l], k_first: c.k_first[l], k_end: c.k_end[l] });
+                } else if c.made >> l & 1 != 0 {
+                    finish(i0 + l, o, d, MarchHit::default(), &mut no_segments);
+                } else {
+                    // No live cell's footprint covers the pixel: the ray is not even made.
+                    finish(i0 + l, Vec3::ZERO, Vec3::ZERO, MarchHit::default(), &mut no_segments);
+                }
             }
         }
         let mut starts = starts.into_iter();
         // Gives `lane` the band's next ray; false when there is none left.
         let mut refill = |lane: usize, wave: &mut Wave, runs: &mut Runs, pixel: &mut [usize; LANES]| -> bool {
-            let Some(Start { pixel: i, o, d, t0, k_first, k_end }) = starts.next() else { return false };
+            let Some(Start { pixel: i, o, d, t_per_fine, t0, k_first, k_end }) = starts.next() else { return false };
             for a in 0..3 {
-                (wave.o[a][lane], wave.d[a][lane]) = (o[a], d[a]);
-            }
-            // Ray parameter per fine-grid unit along each axis (for the dead-cell jumps).
-            let t_per_fine = (size / res) / d;
-            for a in 0..3 {
-                wave.t_per_fine[a][lane] = if d[a] == 0.0 { f32::INFINITY } else { t_per_fine[a] };
+                (wave.o[a][lane], wave.d[a][lane], wave.t_per_fine[a][lane]) = (o[a], d[a], t_per_fine[a]);
             }
             (wave.t0[lane], wave.k[lane], wave.k_end[lane]) = (t0, k_first, k_end);
             (wave.transmittance[lane], wave.w_max[lane], wave.t_hit[lane], wave.samples[lane]) = (1.0, 0.0, 0.0, 0);
@@ -1101,7 +1118,7 @@ mod v3 {
             let mut finished = !active & ((1 << LANES) - 1);
             for _ in 0..STEPS {
                 // SAFETY: `locate8` on the live index (b³ entries, asserted); `sigma8` on its
-                // bricks (every entry is −1 or a brick below `brick_count`, by
+                // bricks (every entry is negative or a brick below `brick_count`, by
                 // `LiveCells::new`); lanes `at..at + 8` of the `LANES`-lane arrays.
                 let stopped = unsafe {
                     let frozen = |at: usize| _mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32((finished >> at) as i32), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256());
@@ -1121,8 +1138,9 @@ mod v3 {
                 let l = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
                 let hit = MarchHit { t_hit: wave.t_hit[l], alpha_c: 1.0 - wave.transmittance[l], w_max: wave.w_max[l], samples: wave.samples[l] };
+                // The open run closes here (as `Segments::select` would close it).
                 if MULTI && runs.open[l] != 0 {
-                    segments[l].set_open(runs.segment(l), runs.primary[l] != 0);
+                    segments[l].close_run(runs.segment(l), runs.primary[l] != 0);
                 }
                 let (o, d) = (Vec3::new(wave.o[0][l], wave.o[1][l], wave.o[2][l]), Vec3::new(wave.d[0][l], wave.d[1][l], wave.d[2][l]));
                 finish(pixel[l], o, d, hit, &mut segments[l]);
@@ -1133,7 +1151,117 @@ mod v3 {
         }
     }
 
-    /// A group's samples of one step: where they are and in which cell (`brick` −1 where
+    /// A ray of [`march_wave`] that takes samples: its pixel in the band, origin and
+    /// direction, ray parameter per fine-grid unit along each axis (+∞ where it is parallel
+    /// to the axis; for the dead-cell jumps), and its lattice ([`lattice`]).
+    struct Start {
+        pixel: usize,
+        o: Vec3,
+        d: Vec3,
+        t_per_fine: [f32; 3],
+        t0: f32,
+        k_first: i32,
+        k_end: i32,
+    }
+
+    /// Pixels `i0..i0 + 8` of a band (lanes past `n` are ignored): their rays as
+    /// [`RayFrame::ray`] makes them, clipped to the box and cut to the pixel's bounds as
+    /// [`lattice`] does — the same operations in the same order, so the same bits — 8 at a
+    /// time, so that their divisions and square roots overlap.
+    struct Rays8 {
+        o: [[f32; 8]; 3],
+        d: [[f32; 8]; 3],
+        t_per_fine: [[f32; 8]; 3],
+        t0: [f32; 8],
+        k_first: [i32; 8],
+        k_end: [i32; 8],
+        /// Lanes whose ray was made (some footprint covers the pixel), and that take samples.
+        made: u32,
+        start: u32,
+    }
+
+    /// See [`Rays8`].
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn rays8(f: &RayFrame, density: &TextureCubes, bounds: Option<&RayBounds>, y0: u32, i0: usize, n: usize, step: f32) -> Rays8 {
+        let width = f.intrinsics.width as usize;
+        let lanes = 8.min(n - i0);
+        let (mut x_px, mut y_px, mut t_lo, mut t_hi) = ([0.0f32; 8], [0.0f32; 8], [f32::NEG_INFINITY; 8], [f32::INFINITY; 8]);
+        for l in 0..lanes {
+            let i = i0 + l;
+            (x_px[l], y_px[l]) = ((i % width) as f32, (y0 as usize + i / width) as f32);
+            if let Some(b) = bounds {
+                (t_lo[l], t_hi[l]) = (b.t_lo[i], b.t_hi[i]);
+            }
+        }
+        let set = _mm256_set1_ps;
+        let ld = |a: &[f32; 8]| {
+            // SAFETY: 8 f32.
+            unsafe { _mm256_loadu_ps(a.as_ptr()) }
+        };
+        let st = |v: __m256| {
+            let mut a = [0.0f32; 8];
+            // SAFETY: 8 f32.
+            unsafe { _mm256_storeu_ps(a.as_mut_ptr(), v) };
+            a
+        };
+        let k = &f.intrinsics;
+        // `RayFrame::ray`.
+        let x = _mm256_div_ps(_mm256_sub_ps(_mm256_add_ps(ld(&x_px), set(0.5)), set(k.cx)), set(k.fx));
+        let y = _mm256_div_ps(_mm256_xor_ps(_mm256_sub_ps(_mm256_add_ps(ld(&y_px), set(0.5)), set(k.cy)), set(-0.0)), set(k.fy));
+        let r2 = _mm256_add_ps(_mm256_mul_ps(x, x), _mm256_mul_ps(y, y));
+        let len = _mm256_sqrt_ps(_mm256_add_ps(set(1.0), r2));
+        let (x_len, y_len) = (_mm256_div_ps(x, len), _mm256_div_ps(y, len));
+        let z_dir = _mm256_div_ps(set(-1.0), len);
+        let z_off = _mm256_div_ps(r2, _mm256_mul_ps(len, _mm256_add_ps(len, set(1.0))));
+        let [c0, c1, c2] = f.object_from_camera;
+        let rotate = |a: usize, v: [__m256; 3]| _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(set(c0[a]), v[0]), _mm256_mul_ps(set(c1[a]), v[1])), _mm256_mul_ps(set(c2[a]), v[2]));
+        let d = [0, 1, 2].map(|a| rotate(a, [x_len, y_len, z_dir]));
+        let o = [0, 1, 2].map(|a| _mm256_add_ps(set(f.origin_near_in_object[a]), _mm256_mul_ps(set(f.t_shift), rotate(a, [x_len, y_len, z_off]))));
+        // `clip_ray`.
+        let (lo, hi) = (density.bounds.min, density.bounds.max);
+        let (mut t_near, mut t_far, mut outside) = (set(-crate::model::BIG), set(crate::model::BIG), _mm256_setzero_ps());
+        for a in 0..3 {
+            let abs = _mm256_andnot_ps(set(-0.0), d[a]);
+            let tiny = _mm256_cmp_ps::<_CMP_LT_OQ>(abs, set(crate::model::TINY_DIR));
+            let out = _mm256_or_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(o[a], set(lo[a])), _mm256_cmp_ps::<_CMP_GT_OQ>(o[a], set(hi[a])));
+            outside = _mm256_or_ps(outside, _mm256_and_ps(tiny, out));
+            let ta = _mm256_div_ps(_mm256_sub_ps(set(lo[a]), o[a]), d[a]);
+            let tb = _mm256_div_ps(_mm256_sub_ps(set(hi[a]), o[a]), d[a]);
+            t_near = _mm256_blendv_ps(_mm256_max_ps(t_near, _mm256_min_ps(ta, tb)), t_near, tiny);
+            t_far = _mm256_blendv_ps(_mm256_min_ps(t_far, _mm256_max_ps(ta, tb)), t_far, tiny);
+        }
+        let t0 = _mm256_max_ps(t_near, _mm256_setzero_ps());
+        let clipped = _mm256_andnot_ps(outside, _mm256_cmp_ps::<_CMP_GT_OQ>(t_far, t0));
+        // `lattice`.
+        let (t_lo, t_hi) = (ld(&t_lo), ld(&t_hi));
+        let made = _mm256_cmp_ps::<_CMP_LE_OQ>(t_lo, t_hi);
+        let (t_begin, t_end) = (_mm256_max_ps(t0, t_lo), _mm256_min_ps(t_far, t_hi));
+        let lattice_k = |t: __m256| _mm256_ceil_ps(_mm256_sub_ps(_mm256_div_ps(_mm256_sub_ps(t, t0), set(step)), set(0.5)));
+        // (Clamped below 2³⁰ before the integer conversion, as `as i32` saturates.)
+        let to_i32 = |v: __m256| _mm256_cvttps_epi32(_mm256_min_ps(v, set(1073741824.0)));
+        let k_first = to_i32(_mm256_max_ps(lattice_k(t_begin), _mm256_setzero_ps()));
+        let k_end = to_i32(lattice_k(t_end));
+        let samples = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(t_begin, t_end), _mm256_castsi256_ps(_mm256_cmpgt_epi32(k_end, k_first)));
+        let lane_mask = (1u32 << lanes) - 1;
+        let made_bits = _mm256_movemask_ps(made) as u32 & lane_mask;
+        let start_bits = _mm256_movemask_ps(_mm256_and_ps(_mm256_and_ps(made, clipped), samples)) as u32 & lane_mask;
+        // Ray parameter per fine-grid unit, (size / res) / d (+∞ where d = 0).
+        let (size, res) = (density.bounds.size(), density.fine_res() as f32);
+        let t_per_fine = [0, 1, 2].map(|a| {
+            let per = _mm256_div_ps(set(size[a] / res), d[a]);
+            st(_mm256_blendv_ps(per, set(f32::INFINITY), _mm256_cmp_ps::<_CMP_EQ_OQ>(d[a], _mm256_setzero_ps())))
+        });
+        let ki = |v: __m256i| {
+            let mut a = [0i32; 8];
+            // SAFETY: 8 i32.
+            unsafe { _mm256_storeu_si256(a.as_mut_ptr().cast(), v) };
+            a
+        };
+        Rays8 { o: o.map(st), d: d.map(st), t_per_fine, t0: st(t0), k_first: ki(k_first), k_end: ki(k_end), made: made_bits, start: start_bits }
+    }
+
+    /// A group's samples of one step: where they are and in which cell (`brick` < 0 where
     /// the cell is not live).
     struct Located {
         k: __m256i,
@@ -1173,7 +1301,7 @@ mod v3 {
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     unsafe fn sigma8(density: &TextureCubes, cells: &LiveCells, at: &Located, frozen: __m256i, step: f32) -> (__m256i, __m256, __m256) {
         let is_live = _mm256_andnot_si256(frozen, _mm256_cmpgt_epi32(at.brick, _mm256_set1_epi32(-1)));
-        // SAFETY: −1 (a dead cell) is read as brick 0 and masked out below.
+        // SAFETY: a dead cell (negative) is read as brick 0 and masked out below.
         let acc = unsafe { density8(density, cells, at.g, at.c, _mm256_max_epi32(at.brick, _mm256_setzero_si256())) };
         let sigma = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
         let ex = _mm256_blendv_ps(_mm256_set1_ps(1.0), exp_neg8(_mm256_mul_ps(sigma, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
@@ -1195,7 +1323,7 @@ mod v3 {
     /// tests. With σ = 0 (dead cells and frozen lanes), α = 0 and nothing changes, so every
     /// lane runs it; only σ ≠ 0 samples count and can stop. Then each lane's next sample:
     /// k + 1 in a live cell; in a dead one, the first lattice sample at or after
-    /// t_exit − margin, if that is further; a frozen lane stays. Returns the lanes (bits
+    /// t_exit − margin (t_exit: where the ray leaves the cell's dead block), if that is further; a frozen lane stays. Returns the lanes (bits
     /// `at..at + 8`) that stopped or have no sample left.
     #[inline]
     #[allow(clippy::too_many_arguments)]
@@ -1255,10 +1383,18 @@ mod v3 {
                 _mm256_storeu_si256(runs.primary.as_mut_ptr().add(at).cast(), _mm256_castps_si256(primary));
             }
             let k1 = _mm256_add_epi32(l.k, _mm256_set1_epi32(1));
+            // The dead block's side m = 2^L cells (1 in live cells), and 1/m, from their
+            // exponent bits.
+            let level = _mm256_max_epi32(_mm256_sub_epi32(_mm256_set1_epi32(-1), l.brick), _mm256_setzero_si256());
+            let m = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(level, _mm256_set1_epi32(127))));
+            let inv_m = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_sub_epi32(_mm256_set1_epi32(127), level)));
             let exit = |a: usize| {
                 let t_per = ld(&wave.t_per_fine[a]);
                 let up = _mm256_cmp_ps::<_CMP_GT_OQ>(t_per, zero);
-                let bound = _mm256_mul_ps(_mm256_add_ps(l.c[a], _mm256_and_ps(up, one)), _mm256_set1_ps(rule.r));
+                // The block's near corner, floor(c / m)·m (exact: m is a power of two), and
+                // the face the ray leaves it by, in fine-grid units.
+                let block = _mm256_mul_ps(_mm256_floor_ps(_mm256_mul_ps(l.c[a], inv_m)), m);
+                let bound = _mm256_mul_ps(_mm256_add_ps(block, _mm256_and_ps(up, m)), _mm256_set1_ps(rule.r));
                 // (bound − g)·t_per: ≥ 0, or NaN for a parallel ray (0·∞), which `min_ps`
                 // drops in favour of its second operand.
                 _mm256_mul_ps(_mm256_sub_ps(bound, l.g[a]), t_per)
@@ -1289,7 +1425,7 @@ mod v3 {
     }
 
     /// The index cells of fine-grid points `g` — trunc(g / r) clamped to the grid, as
-    /// `TextureCubes::sample` — and their live bricks (−1 where the cell is not live).
+    /// `TextureCubes::sample` — and their live bricks (negative where the cell is not live).
     ///
     /// # Safety
     /// `live` has `grid³` entries; the CPU has x86-64-v3.
@@ -1598,6 +1734,35 @@ mod tests {
                 assert!(a.stats.hits > 1000, "{settings:?}: the views should hit ({} hits)", a.stats.hits);
             }
         }
+    }
+
+    #[test]
+    fn dead_blocks_hold_no_live_cell() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/assets/lego.nolf");
+        let density = Asset::load(&path).unwrap().density;
+        let live = LiveCells::new(&density);
+        let g = density.grid as usize;
+        let at = |x: usize, y: usize, z: usize| live.index[x + g * (y + g * z)];
+        let mut per_level = [0usize; MAX_SKIP_LEVEL as usize + 1];
+        for i in 0..g.pow(3) {
+            let entry = at(i % g, (i / g) % g, i / (g * g));
+            if entry >= 0 {
+                continue;
+            }
+            let level = -1 - entry;
+            assert!((0..=MAX_SKIP_LEVEL).contains(&level));
+            per_level[level as usize] += 1;
+            // The block of 2^L cells holding the cell is dead, and (below the top level) the
+            // block twice its size is not.
+            let block = |l: i32| {
+                let m = 1usize << l;
+                let c = [i % g, (i / g) % g, i / (g * g)].map(|v| v / m * m);
+                (c[2]..(c[2] + m).min(g)).all(|z| (c[1]..(c[1] + m).min(g)).all(|y| (c[0]..(c[0] + m).min(g)).all(|x| at(x, y, z) < 0)))
+            };
+            assert!(block(level), "cell {i}: its level-{level} block holds a live cell");
+            assert!(level == MAX_SKIP_LEVEL || !block(level + 1), "cell {i}: level {level} is not the largest");
+        }
+        assert!(per_level.iter().all(|&n| n > 0), "every level should occur in lego: {per_level:?}");
     }
 
     fn same_sigmas(prepared: &FastPrepared) {

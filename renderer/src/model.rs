@@ -199,12 +199,16 @@ impl Segments {
     fn close(&mut self) {
         let Some(seg) = self.open.take() else { return };
         let is_primary = std::mem::take(&mut self.open_is_primary);
+        self.push_closed(seg, is_primary);
+    }
+
+    /// Adds a closed segment: a free slot, or (full) the lightest closed one that is not the
+    /// primary gives way, if it is lighter (or `seg` is the primary).
+    fn push_closed(&mut self, seg: Segment, is_primary: bool) {
         let slot = if self.n_closed < MAX_SEGMENTS {
             self.n_closed += 1;
             Some(self.n_closed - 1)
         } else {
-            // Full: the lightest closed segment that is not the primary gives way, if it is
-            // lighter than this one (or this one is the primary).
             let lightest = (0..MAX_SEGMENTS).filter(|&i| Some(i) != self.primary).min_by(|&a, &b| self.closed[a].weight.total_cmp(&self.closed[b].weight)).expect("at most one primary");
             (is_primary || self.closed[lightest].weight < seg.weight).then_some(lightest)
         };
@@ -216,21 +220,16 @@ impl Segments {
         }
     }
 
-    /// Makes `run` the open run, as [`Tracker::sample`] would have left it (`is_primary`: it
-    /// holds the ray's heaviest sample), for callers that track the open run themselves (the
-    /// fast renderer, 8 rays at a time).
-    pub fn set_open(&mut self, run: Segment, is_primary: bool) {
-        self.open = Some(run);
-        self.open_is_primary = is_primary;
+    /// Closes `run` as [`Tracker::sample`] would have closed it, had it been the open run
+    /// (`is_primary`: it holds the ray's heaviest sample so far), for callers that track the
+    /// open run themselves (the fast renderer, 8 rays at a time): at a sample past the gap,
+    /// and at the ray's end (where [`Self::select`] would close it).
+    pub fn close_run(&mut self, run: Segment, is_primary: bool) {
         if is_primary {
             self.primary = None;
         }
-    }
-
-    /// [`Self::set_open`], then closed as a sample past the gap closes it.
-    pub fn close_run(&mut self, run: Segment, is_primary: bool) {
-        self.set_open(run, is_primary);
-        self.close();
+        (self.open, self.open_is_primary) = (None, false);
+        self.push_closed(run, is_primary);
     }
 
     /// The segments queried under `rule` for a ray of coarse opacity `alpha_c`, primary
