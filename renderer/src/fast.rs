@@ -10,10 +10,9 @@
 //!   ray (gathers for the cell's brick and the trilinear corners — the density's f16 values
 //!   read two corners at a time — and a vector `exp`) and applies the rule to it; a lane in
 //!   a dead cell jumps to where its ray leaves the largest aligned dead block of cells
-//!   around it (up to 8 cells per side), a finished lane takes the band's
-//!   next pixel. The rays' dependent reads overlap, and the steps have no branch on the
-//!   data. Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
-//!   [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). Both give the
+//!   around it (up to 8 cells per side), a finished lane takes the band's next pixel. The
+//!   rays' dependent reads overlap, and the steps have no branch on the data. Without AVX2
+//!   (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). Both give the
 //!   same frames to the bit (tested). σ at each sample is the reference's to the bit; the
 //!   only difference is which of two touching cells a sample exactly on their shared face
 //!   belongs to (the reference follows its DDA, this the sample's position), measured
@@ -815,8 +814,8 @@ mod v3 {
         for half in 0..n.div_ceil(8) {
             let at = 8 * half;
             // SAFETY: register arithmetic; `cells8` on the live index (b³ entries, asserted),
-            // `density8` on its bricks with negative entries replaced by 0 (as in `march_wave`); stores
-            // into `[f32; BATCH]` at `at ≤ BATCH − 8`.
+            // `density8` on its bricks with negative entries replaced by 0 (as in
+            // `march_wave`); stores into `[f32; BATCH]` at `at ≤ BATCH − 8`.
             unsafe {
                 let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
                 let k = _mm256_add_epi32(_mm256_set1_epi32(k0 + at as i32), lane);
@@ -1175,8 +1174,10 @@ mod v3 {
         t0: [f32; 8],
         k_first: [i32; 8],
         k_end: [i32; 8],
-        /// Lanes whose ray was made (some footprint covers the pixel), and that take samples.
+        /// Lanes (bits) whose ray was made: some footprint covers the pixel.
         made: u32,
+        /// Lanes whose ray takes samples: it was made, meets the box and has lattice samples
+        /// inside its bounds (the others are finished without a march).
         start: u32,
     }
 
@@ -1323,8 +1324,9 @@ mod v3 {
     /// tests. With σ = 0 (dead cells and frozen lanes), α = 0 and nothing changes, so every
     /// lane runs it; only σ ≠ 0 samples count and can stop. Then each lane's next sample:
     /// k + 1 in a live cell; in a dead one, the first lattice sample at or after
-    /// t_exit − margin (t_exit: where the ray leaves the cell's dead block), if that is further; a frozen lane stays. Returns the lanes (bits
-    /// `at..at + 8`) that stopped or have no sample left.
+    /// t_exit − margin (t_exit: where the ray leaves the cell's dead block), if that is
+    /// further; a frozen lane stays. Returns the lanes (bits `at..at + 8`) that stopped or
+    /// have no sample left.
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
@@ -1745,7 +1747,7 @@ mod tests {
         let at = |x: usize, y: usize, z: usize| live.index[x + g * (y + g * z)];
         let mut per_level = [0usize; MAX_SKIP_LEVEL as usize + 1];
         for i in 0..g.pow(3) {
-            let entry = at(i % g, (i / g) % g, i / (g * g));
+            let entry = live.index[i];
             if entry >= 0 {
                 continue;
             }
