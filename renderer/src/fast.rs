@@ -12,8 +12,9 @@
 //!   a dead cell jumps to where its ray leaves the largest aligned dead block of cells
 //!   around it (up to 8 cells per side), a finished lane takes the band's next pixel. The
 //!   rays' dependent reads overlap, and the steps have no branch on the data. Without AVX2
-//!   (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). Both give the
-//!   same frames to the bit (tested). σ at each sample is the reference's to the bit; the
+//!   (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples [`BATCH`] at a time,
+//!   taken front to back by the same rule ([`Scan`]). Both give the same frames to the bit
+//!   (tested). σ at each sample is the reference's to the bit; the
 //!   only difference is which of two touching cells a sample exactly on their shared face
 //!   belongs to (the reference follows its DDA, this the sample's position), measured
 //!   against the reference in the tests and in `bench render`.
