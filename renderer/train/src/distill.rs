@@ -13,7 +13,10 @@
 //!      and specular tint `t` (sigmoid);
 //!    - the specular net: PSH features `E_s(P_h)` (trilinear, trainable) with SH4 of the view
 //!      direction and `α_c` → MLP (64, 64) → `c_s`, `α` (sigmoids);
-//!    - `c = clamp(c_d + t·c_s, 0, 1)`, pixel `= α c + (1 − α) bg`, exactly [`model::shade`].
+//!    - `c = clamp(c_d + t·c_s, 0, 1)`, pixel `= α c + (1 − α) bg`, exactly [`model::shade`];
+//!    - optionally (`teacher_query_weight` λ > 0), `+ λ Σ_q w_q β_q ‖c_q − c̄_q‖²`: each
+//!      query's colour toward the teacher's colour averaged by weight `w_q` near it
+//!      ([`teacher_query_targets`]).
 //!
 //!    Rays are drawn half uniformly over all hits and half from an error map: per image tile
 //!    of `error_tile` pixels, a running mean of the loss of the rays drawn there, so training
@@ -105,6 +108,11 @@ pub struct DistillConfig {
     /// for stages 2–4 ([`with_teacher_views`]); 0: the captured images only.
     #[serde(default)]
     pub teacher_views: u32,
+    /// Weight λ of a second loss on each query's own colour: toward the teacher's colour
+    /// averaged by weight over its samples near the query ([`teacher_query_targets`]), so
+    /// each hit learns its surface's colour and not only the blend the pixel sees (0: off).
+    #[serde(default)]
+    pub teacher_query_weight: f32,
     pub steps: u64,
     pub rays_per_batch: usize,
     pub rays_per_chunk: usize,
@@ -154,6 +162,7 @@ impl DistillConfig {
             // in another segment: +0.83 dB on lego at 1.29 queries per hit ray.
             hits: model::HitRule { tau: 0.1, max_hits: 3, gap_steps: 3.0 },
             teacher_views: 0,
+            teacher_query_weight: 0.0,
             steps,
             rays_per_batch: 8192,
             rays_per_chunk: 128,
@@ -212,6 +221,9 @@ impl DistillConfig {
         }
         if !(1..=1 << 22).contains(&self.rays_per_batch) || !(1..=1 << 16).contains(&self.rays_per_chunk) || self.error_tile == 0 {
             return Err("batch, chunk or tile size out of range".into());
+        }
+        if !(self.teacher_query_weight.is_finite() && self.teacher_query_weight >= 0.0) {
+            return Err("teacher_query_weight must be finite and ≥ 0".into());
         }
         if !(0.0..=1.0).contains(&self.error_fraction) || !self.learning_rate_schedule.iter().all(|(_, f)| f.is_finite() && *f > 0.0) {
             return Err("error fraction or learning-rate schedule out of range".into());
@@ -412,6 +424,64 @@ pub fn with_teacher_views(teacher: &Trainer, data: &Dataset, count: usize, seed:
         .collect();
     out.images.extend(rendered);
     out
+}
+
+/// The per-query colour targets of [`DistillConfig::teacher_query_weight`]: per hit ray and
+/// query, the teacher's colour averaged by weight over its own march samples within `window`
+/// (ray-parameter units; the multi-hit rule's segment gap) of the query, and that weight
+/// (≤ 1; 0 where the teacher has less than 10⁻³ of its weight there: no target). On the
+/// oracle rows of `bench tradeoff`, such averaged colours are the ones that come within
+/// 0.1 dB of the teacher on lego.
+pub fn teacher_query_targets(teacher: &Trainer, data: &Dataset, hits: &Hits, window: f32) -> Vec<[[f32; 4]; model::MAX_HITS]> {
+    use nephele_renderer::ngp::NgpRay;
+    let m = teacher.model();
+    let delta = m.step_size();
+    hits.rays
+        .par_chunks(m.rays_per_chunk.max(1))
+        .flat_map_iter(|chunk| {
+            let ngp_rays: Vec<NgpRay> = chunk
+                .iter()
+                .map(|h| {
+                    let (origin, dir) = data.images[h.image as usize].ray(h.x_px as u32, h.y_px as u32);
+                    NgpRay { origin, dir, background: Vec3::ZERO, jitter: 0.5 }
+                })
+                .collect();
+            let out = m.forward_chunk(&ngp_rays);
+            let mut k0 = 0;
+            let mut res = Vec::with_capacity(chunk.len());
+            for ((h, ray), rows) in chunk.iter().zip(&ngp_rays).zip(&out.used) {
+                let t_q: Vec<f32> = h.points().map(|p| ray.dir.dot(p - ray.origin)).collect();
+                let mut acc = [[0.0f32; 4]; model::MAX_HITS];
+                let mut transmittance = 1.0f32;
+                for (i, &row) in rows.iter().enumerate() {
+                    let p = m.bounds.min + out.points01[row as usize] * m.bounds.size();
+                    let alpha = -(-out.tape.sigma[row as usize] * delta).exp_m1();
+                    let w = transmittance * alpha;
+                    transmittance *= 1.0 - alpha;
+                    let t = ray.dir.dot(p - ray.origin);
+                    let rgb = &out.tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3];
+                    for (a, &tq) in acc.iter_mut().zip(&t_q) {
+                        if (t - tq).abs() <= window {
+                            a.iter_mut().zip(rgb).for_each(|(a, c)| *a += w * c);
+                            a[3] += w;
+                        }
+                    }
+                }
+                k0 += rows.len();
+                for a in &mut acc {
+                    if a[3] > 1e-3 {
+                        let w = a[3];
+                        a[..3].iter_mut().for_each(|c| *c /= w);
+                        a[3] = w.min(1.0);
+                    } else {
+                        *a = [0.0; 4];
+                    }
+                }
+                res.push(acc);
+            }
+            res
+        })
+        .collect()
 }
 
 /// Stage 2b output: hits grouped by error-map tile.
@@ -679,6 +749,8 @@ pub struct StudentRay {
     pub rgb: Vec3,
     pub alpha: f32,
     pub background: Vec3,
+    /// Per query (primary first): a straight RGB target and its loss weight (0: none).
+    pub query_targets: [[f32; 4]; model::MAX_HITS],
 }
 
 /// Forward results of one ray.
@@ -690,6 +762,8 @@ pub struct StudentOutput {
     /// `‖pixel − target‖²` and `(α − α_gt)²`.
     pub rgb_error: f32,
     pub alpha_error: f32,
+    /// `Σ_q w_q β_q ‖c_q − c_q,target‖²` over the queries' colours and targets.
+    pub target_error: f32,
 }
 
 /// Where a chunk's diffuse colour and tint come from.
@@ -800,12 +874,15 @@ impl Student {
         }
     }
 
-    /// Forward, and with `loss_scale` the backward pass of `loss_scale · Σ (‖e_rgb‖² + e_α²)`.
+    /// Forward, and with `loss_scale` the backward pass of
+    /// `loss_scale · Σ (‖e_rgb‖² + e_α² + target error)`.
     /// A ray's queries (one per hit, [`MoreHits`]) are shaded each as [`model::shade`] does
     /// and blended by their weights `β`: pixel `= Σ β_q pixel_q`, α `= Σ β_q α_q`.
     fn run_chunk(&self, rays: &[StudentRay], diffuse_source: DiffuseSource<'_>, loss_scale: Option<f32>) -> ChunkGradients {
         // Every query of the chunk: (ray, point, β).
         let queries: Vec<(usize, Vec3, f32)> = rays.iter().enumerate().flat_map(|(i, r)| r.more.queries(r.p_hit).map(move |(p, b)| (i, p, b))).collect();
+        // Each query's place in its ray (for its target).
+        let slots: Vec<usize> = rays.iter().flat_map(|r| 0..r.more.queries(r.p_hit).count()).collect();
         let nq = queries.len();
         let net = match diffuse_source {
             DiffuseSource::Own => self.diffuse.as_ref(),
@@ -872,18 +949,20 @@ impl Student {
             .collect();
         // Per ray: the blend, its errors, and d(loss)/d(pixel), d(loss)/d(α).
         let mut out = ChunkGradients::default();
-        let (mut pixel, mut alpha) = (vec![Vec3::ZERO; rays.len()], vec![0.0f32; rays.len()]);
-        for (&(i, _, beta), sh) in queries.iter().zip(&shaded) {
+        let (mut pixel, mut alpha, mut target_error) = (vec![Vec3::ZERO; rays.len()], vec![0.0f32; rays.len()], vec![0.0f32; rays.len()]);
+        for ((&(i, _, beta), sh), &slot) in queries.iter().zip(&shaded).zip(&slots) {
             let bg = rays[i].background;
             pixel[i] += beta * (sh.alpha * sh.c + (1.0 - sh.alpha) * bg);
             alpha[i] += beta * sh.alpha;
+            let [r, g, b, w] = rays[i].query_targets[slot];
+            target_error[i] += w * beta * (sh.c - Vec3::new(r, g, b)).length_squared();
         }
         let mut d_ray = Vec::with_capacity(rays.len());
         for (i, ray) in rays.iter().enumerate() {
             let target = ray.alpha * ray.rgb + (1.0 - ray.alpha) * ray.background;
             let e = pixel[i] - target;
             let ea = alpha[i] - ray.alpha;
-            out.outputs.push(StudentOutput { pixel: pixel[i], alpha: alpha[i], rgb_error: e.length_squared(), alpha_error: ea * ea });
+            out.outputs.push(StudentOutput { pixel: pixel[i], alpha: alpha[i], rgb_error: e.length_squared(), alpha_error: ea * ea, target_error: target_error[i] });
             if let Some(s) = loss_scale {
                 d_ray.push((2.0 * s * e, 2.0 * s * ea));
             }
@@ -900,7 +979,9 @@ impl Student {
             let d_pixel = beta * d_pixel;
             let d_alpha = d_pixel.dot(sh.c - rays[i].background) + beta * d_alpha_loss;
             let inside = Vec3::select(sh.u.cmpgt(Vec3::ZERO) & sh.u.cmplt(Vec3::ONE), Vec3::ONE, Vec3::ZERO);
-            let d_c = sh.alpha * d_pixel * inside;
+            let [r, g, b, w] = rays[i].query_targets[slots[q]];
+            let d_target = 2.0 * loss_scale.unwrap_or(0.0) * w * beta * (sh.c - Vec3::new(r, g, b));
+            let d_c = (sh.alpha * d_pixel + d_target) * inside;
             let d_cs = tint * d_c;
             if net.is_some() {
                 let d_blended = [d_c.x, d_c.y, d_c.z, d_c.dot(sh.c_s)];
@@ -938,8 +1019,8 @@ impl Student {
         rays.par_chunks(rays_per_chunk.max(1)).flat_map_iter(|c| self.run_chunk(c, DiffuseSource::Cubes(diffuse), None).outputs).collect()
     }
 
-    /// Adds the gradients of the batch loss `mean over rays of (‖e_rgb‖² + e_α²) / 4` to
-    /// `grads`; returns the per-ray results.
+    /// Adds the gradients of the batch loss `mean over rays of (‖e_rgb‖² + e_α² + target
+    /// error) / 4` to `grads`; returns the per-ray results.
     pub fn gradients(&self, rays: &[StudentRay], rays_per_chunk: usize, grads: &mut StudentGradients) -> Vec<StudentOutput> {
         let scale = 1.0 / (4 * rays.len().max(1)) as f32;
         let chunks: Vec<ChunkGradients> = rays.par_chunks(rays_per_chunk.max(1)).map(|c| self.run_chunk(c, DiffuseSource::Own, Some(scale))).collect();
@@ -985,6 +1066,8 @@ pub struct Distiller {
     pub config: DistillConfig,
     pub student: Student,
     pub hits: Hits,
+    /// Per hit ray, [`teacher_query_targets`] (empty: none).
+    pub query_targets: Vec<[[f32; 4]; model::MAX_HITS]>,
     pub step: u64,
     /// Running mean loss per tile (0 for tiles without hits).
     pub error_map: Vec<f32>,
@@ -1081,7 +1164,7 @@ impl Distiller {
         ];
         let tiles = geometry.hits.tile_start.len() - 1;
         let error_map = (0..tiles).map(|t| if geometry.hits.tile_start[t + 1] > geometry.hits.tile_start[t] { 1.0 } else { 0.0 }).collect();
-        let mut d = Self { config: cfg, student, hits: geometry.hits, step: 0, error_map, adam, grads, cdf: Vec::new() };
+        let mut d = Self { config: cfg, student, hits: geometry.hits, query_targets: Vec::new(), step: 0, error_map, adam, grads, cdf: Vec::new() };
         d.rebuild_cdf();
         Ok(d)
     }
@@ -1130,7 +1213,8 @@ impl Distiller {
                 let (_, dir) = image.ray(h.x_px as u32, h.y_px as u32);
                 let [r, g, b, a] = image.pixel(h.x_px as u32, h.y_px as u32);
                 let background = Vec3::new(rng.random(), rng.random(), rng.random());
-                StudentRay { p_hit: h.p_hit, more: h.more, dir, alpha_c: h.alpha_c, rgb: Vec3::new(r, g, b), alpha: a, background }
+                let query_targets = self.query_targets.get(i).map_or([[0.0; 4]; model::MAX_HITS], |t| t.map(|q| [q[0], q[1], q[2], q[3] * self.config.teacher_query_weight]));
+                StudentRay { p_hit: h.p_hit, more: h.more, dir, alpha_c: h.alpha_c, rgb: Vec3::new(r, g, b), alpha: a, background, query_targets }
             })
             .collect();
         let mut grads = std::mem::take(&mut self.grads);

@@ -126,7 +126,7 @@ fn shade_student(student: &Student, diffuse: Option<&TextureCubes>, rays: &[(Vec
         .iter()
         .zip(marched)
         .filter(|(_, m)| m.alpha_c >= alpha_min)
-        .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, more: MoreHits::default(), dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background })
+        .map(|(&(o, d), m)| StudentRay { p_hit: o + m.t_hit * d, more: MoreHits::default(), dir: d, alpha_c: m.alpha_c, rgb: Vec3::ZERO, alpha: 0.0, background, query_targets: [[0.0; 4]; model::MAX_HITS] })
         .collect();
     let hits = hit_rays.len();
     let shaded = match diffuse {

@@ -460,6 +460,14 @@ fn train_nolf(opts: &TrainOptions, teacher: &Trainer, cfg: DistillConfig, data: 
         resumed = true;
         eprintln!("stage nolf: resumed the finished appearance nets from {}", ckpt.display());
     }
+    if distiller.step < steps && distiller.config.teacher_query_weight > 0.0 {
+        // Each query's colour target, from the teacher's march along its ray (the window: the
+        // multi-hit rule's segment gap).
+        let t = Instant::now();
+        let window = distiller.config.hits.gap_steps * step;
+        distiller.query_targets = nephele_train::distill::teacher_query_targets(teacher, data, &distiller.hits, window);
+        eprintln!("stage nolf targets: the teacher's colour at each query of {} hit rays, {:.1} s", distiller.query_targets.len(), t.elapsed().as_secs_f64());
+    }
     if distiller.step < steps {
         eprintln!("stage nolf appearance: {} steps of {} rays", steps, distiller.config.rays_per_batch);
         let bar = progress_bar("nolf", steps, distiller.step);

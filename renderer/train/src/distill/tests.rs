@@ -47,6 +47,11 @@ fn small_student(rng: &mut SmallRng, variant: impl Fn(&mut DistillConfig)) -> (S
             rgb: (unit(rng) + 1.0) * 0.5,
             alpha: rng.random_range(0.0..1.0),
             background: (unit(rng) + 1.0) * 0.5,
+            // Colour targets on some queries (the per-query loss), none on others.
+            query_targets: std::array::from_fn(|_| {
+                let c = (unit(rng) + 1.0) * 0.5;
+                [c.x, c.y, c.z, if rng.random_bool(0.5) { rng.random_range(0.2..1.0) } else { 0.0 }]
+            }),
         })
         .collect();
     (student, rays)
@@ -67,7 +72,7 @@ fn more_hits(count: usize, p: Vec3, rng: &mut SmallRng) -> MoreHits {
 }
 
 fn loss(student: &Student, rays: &[StudentRay]) -> f64 {
-    student.forward(rays, 4).iter().map(|o| (o.rgb_error + o.alpha_error) as f64).sum::<f64>() / (4 * rays.len()) as f64
+    student.forward(rays, 4).iter().map(|o| (o.rgb_error + o.alpha_error + o.target_error) as f64).sum::<f64>() / (4 * rays.len()) as f64
 }
 
 /// Checks 20 gradients of each parameter group the student has (the largest 12 and 8 at
@@ -142,6 +147,41 @@ fn distill_student_gradients_match_finite_differences() {
     });
     assert!(student.diffuse.is_none() && student.diffuse_lattice.is_none());
     check_gradients(student, &rays, &mut rng);
+}
+
+/// A teacher of constant density σ = 2 whose colour depends on the view direction only
+/// (zero encoding): every sample of a ray has the ray's colour, so each query's target is
+/// that colour; its weight is the teacher's weight within the window, less for the deeper
+/// query, and 0 for a query where the teacher has no samples.
+#[test]
+fn teacher_query_targets_average_the_teachers_colour_near_each_query() {
+    let mut teacher = crate::Trainer::new(TrainConfig::tiny());
+    teacher.field.grid.params.fill(0.0);
+    let raw_bias = teacher.field.density_mlp.params().len() - nephele_renderer::ngp::field::GEO_FEATURES;
+    teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
+    let dir = TempDir::new("query-targets");
+    synth::generate(&SynthConfig { width: 16, height: 16, n_train: 1, n_val: 1, n_test: 1, ..SynthConfig::new(SynthScene::Mixed) }, &dir.0).unwrap();
+    let data = Dataset::load(&dir.0, &LoadOptions::default()).unwrap();
+    let bounds = teacher.model().bounds;
+    let mut hits = Hits { rays: Vec::new(), tile_start: vec![0], tiles_x: 1, tiles_y: 1, total_rays: 0, missed_opaque: 0 };
+    let mut expected = Vec::new();
+    for (x, y) in [(8, 8), (4, 9), (11, 6)] {
+        let (o, d) = data.images[0].ray(x, y);
+        let (t0, t1) = model::clip_ray(&bounds, o, d).expect("the camera looks at the teacher's box");
+        let at = |f: f32| o + (t0 + f * (t1 - t0)) * d;
+        let more = MoreHits { p: [at(0.6), o + (t1 + 1.0) * d], beta: [0.5, 0.3, 0.2], count: 3 };
+        hits.rays.push(HitRay { image: 0, x_px: x as u16, y_px: y as u16, p_hit: at(0.3), alpha_c: 1.0, more });
+        let (premultiplied, alpha) = teacher.render(&[(o, d)], Vec3::ZERO)[0];
+        expected.push(premultiplied / alpha);
+    }
+    let targets = teacher_query_targets(&teacher, &data, &hits, 0.05);
+    for (t, want) in targets.iter().zip(&expected) {
+        for q in &t[..2] {
+            assert!((Vec3::new(q[0], q[1], q[2]) - *want).abs().max_element() < 1e-4, "{q:?} vs {want}");
+        }
+        assert!(t[0][3] > t[1][3] && t[1][3] > 0.0 && t[0][3] <= 1.0, "weights {t:?}");
+        assert_eq!(t[2], [0.0; 4], "a query outside the teacher's box has no target");
+    }
 }
 
 /// Diffuse colour read from cubes replaces the net (at every query); without a diffuse net
