@@ -39,6 +39,7 @@ use nephele_renderer::{
     mlp::{HIDDEN, SpecularMlp},
     model::{self, RenderSettings},
     ngp::{
+        NgpRay,
         hash_grid::{HashGrid, HashGridConfig},
         mlp::{Mlp, MlpTape},
     },
@@ -433,53 +434,59 @@ pub fn with_teacher_views(teacher: &Trainer, data: &Dataset, count: usize, seed:
 /// oracle rows of `bench tradeoff`, such averaged colours are the ones that come within
 /// 0.1 dB of the teacher on lego.
 pub fn teacher_query_targets(teacher: &Trainer, data: &Dataset, hits: &Hits, window: f32) -> Vec<[[f32; 4]; model::MAX_HITS]> {
-    use nephele_renderer::ngp::NgpRay;
-    let m = teacher.model();
-    let delta = m.step_size();
     hits.rays
-        .par_chunks(m.rays_per_chunk.max(1))
+        .par_chunks(teacher.model().rays_per_chunk.max(1))
         .flat_map_iter(|chunk| {
-            let ngp_rays: Vec<NgpRay> = chunk
+            let rays: Vec<NgpRay> = chunk
                 .iter()
                 .map(|h| {
                     let (origin, dir) = data.images[h.image as usize].ray(h.x_px as u32, h.y_px as u32);
                     NgpRay { origin, dir, background: Vec3::ZERO, jitter: 0.5 }
                 })
                 .collect();
-            let out = m.forward_chunk(&ngp_rays);
-            let mut k0 = 0;
-            let mut res = Vec::with_capacity(chunk.len());
-            for ((h, ray), rows) in chunk.iter().zip(&ngp_rays).zip(&out.used) {
-                let t_q: Vec<f32> = h.points().map(|p| ray.dir.dot(p - ray.origin)).collect();
+            let samples = teacher_samples(teacher, &rays);
+            chunk.iter().zip(rays).zip(samples).map(move |((h, ray), (samples, _))| {
                 let mut acc = [[0.0f32; 4]; model::MAX_HITS];
-                let mut transmittance = 1.0f32;
-                for (i, &row) in rows.iter().enumerate() {
+                for (a, p) in acc.iter_mut().zip(h.points()) {
+                    let t_q = ray.dir.dot(p - ray.origin);
+                    for &(t, w, c) in samples.iter().filter(|s| (s.0 - t_q).abs() <= window) {
+                        let sum = Vec3::from_slice(a) + w * c;
+                        *a = [sum.x, sum.y, sum.z, a[3] + w];
+                    }
+                    let w = a[3];
+                    *a = if w > 1e-3 { [a[0] / w, a[1] / w, a[2] / w, w.min(1.0)] } else { [0.0; 4] };
+                }
+                acc
+            })
+        })
+        .collect()
+}
+
+/// The teacher's march along `rays` (one chunk): per ray, its samples front to back as
+/// `(t, weight, colour)`, with `t` along the ray's direction and weight `T·α`, and the
+/// transmittance left at the end (α = 1 − that).
+pub fn teacher_samples(teacher: &Trainer, rays: &[NgpRay]) -> Vec<(Vec<(f32, f32, Vec3)>, f32)> {
+    let m = teacher.model();
+    let delta = m.step_size();
+    let out = m.forward_chunk(rays);
+    let mut k0 = 0;
+    rays.iter()
+        .zip(&out.used)
+        .map(|(ray, rows)| {
+            let mut transmittance = 1.0f32;
+            let samples = rows
+                .iter()
+                .enumerate()
+                .map(|(i, &row)| {
                     let p = m.bounds.min + out.points01[row as usize] * m.bounds.size();
                     let alpha = -(-out.tape.sigma[row as usize] * delta).exp_m1();
                     let w = transmittance * alpha;
                     transmittance *= 1.0 - alpha;
-                    let t = ray.dir.dot(p - ray.origin);
-                    let rgb = &out.tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3];
-                    for (a, &tq) in acc.iter_mut().zip(&t_q) {
-                        if (t - tq).abs() <= window {
-                            a.iter_mut().zip(rgb).for_each(|(a, c)| *a += w * c);
-                            a[3] += w;
-                        }
-                    }
-                }
-                k0 += rows.len();
-                for a in &mut acc {
-                    if a[3] > 1e-3 {
-                        let w = a[3];
-                        a[..3].iter_mut().for_each(|c| *c /= w);
-                        a[3] = w.min(1.0);
-                    } else {
-                        *a = [0.0; 4];
-                    }
-                }
-                res.push(acc);
-            }
-            res
+                    (ray.dir.dot(p - ray.origin), w, Vec3::from_slice(&out.tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3]))
+                })
+                .collect();
+            k0 += rows.len();
+            (samples, transmittance)
         })
         .collect()
 }

@@ -27,7 +27,7 @@ use nephele_renderer::{
 use rayon::prelude::*;
 
 use crate::{
-    distill::{MoreHits, Student, StudentRay},
+    distill::{MoreHits, Student, StudentRay, teacher_samples},
     trainer::Trainer,
 };
 
@@ -203,30 +203,12 @@ pub struct OracleFrame {
 /// rule, in one march: segments are split `gap_t` (scene units) apart, as the student's rule
 /// does with its own step.
 pub fn render_oracles(teacher: &Trainer, rays: &[(Vec3, Vec3)], background: Vec3, gap_t: f32, alpha_min: f32, rules: &[OracleRule]) -> Vec<OracleFrame> {
-    let model = teacher.model();
-    let delta = model.step_size();
     let per_chunk: Vec<Vec<OracleFrame>> = rays
-        .par_chunks(model.rays_per_chunk.max(1))
+        .par_chunks(teacher.model().rays_per_chunk.max(1))
         .map(|chunk| {
             let ngp_rays: Vec<NgpRay> = chunk.iter().map(|&(origin, dir)| NgpRay { origin, dir, background, jitter: 0.5 }).collect();
-            let out = model.forward_chunk(&ngp_rays);
             let mut frames = vec![OracleFrame::default(); rules.len()];
-            let mut k0 = 0;
-            for (ray, rows) in ngp_rays.iter().zip(&out.used) {
-                // Samples front to back: (t, weight, colour).
-                let mut transmittance = 1.0f32;
-                let samples: Vec<(f32, f32, Vec3)> = rows
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &row)| {
-                        let p = model.bounds.min + out.points01[row as usize] * model.bounds.size();
-                        let alpha = -(-out.tape.sigma[row as usize] * delta).exp_m1();
-                        let w = transmittance * alpha;
-                        transmittance *= 1.0 - alpha;
-                        (ray.dir.dot(p - ray.origin), w, Vec3::from_slice(&out.tape.rgb[3 * (k0 + i)..3 * (k0 + i) + 3]))
-                    })
-                    .collect();
-                k0 += rows.len();
+            for (samples, transmittance) in teacher_samples(teacher, &ngp_rays) {
                 let alpha_c = 1.0 - transmittance;
                 let hit = alpha_c >= alpha_min && !samples.is_empty();
                 for (rule, frame) in rules.iter().zip(&mut frames) {
@@ -290,6 +272,34 @@ fn oracle_colour(rule: &OracleRule, samples: &[(f32, f32, Vec3)], alpha_c: f32, 
 mod tests {
     use super::*;
     use crate::TrainConfig;
+
+    /// With a teacher whose colour depends on the view direction only (zero encoding,
+    /// constant σ = 2), every oracle gives each ray the teacher's own pixel: all its samples
+    /// have one colour, and α is the teacher's.
+    #[test]
+    fn oracles_of_a_one_colour_ray_are_the_teachers_pixel() {
+        let mut teacher = Trainer::new(TrainConfig::tiny());
+        teacher.field.grid.params.fill(0.0);
+        let raw_bias = teacher.field.density_mlp.params().len() - nephele_renderer::ngp::field::GEO_FEATURES;
+        teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
+        let rays: Vec<(Vec3, Vec3)> = (0..16)
+            .map(|i| {
+                let a = i as f32 * 0.41;
+                let o = Vec3::new(3.0 * a.cos(), 0.7 * a.sin(), 3.0 * a.sin());
+                (o, (Vec3::new(0.2 * a.sin(), 0.1, 0.0) - o).normalize())
+            })
+            .collect();
+        let bg = Vec3::new(0.2, 0.5, 0.9);
+        let rule = HitRule { tau: 0.1, max_hits: 3, gap_steps: 3.0 };
+        let rules = [OracleRule::OneHit, OracleRule::MultiHit { rule, averaged: false }, OracleRule::MultiHit { rule, averaged: true }];
+        let want: Vec<f32> = teacher.render(&rays, bg).into_iter().flat_map(|(c, _)| c.to_array()).collect();
+        for frame in render_oracles(&teacher, &rays, bg, 0.05, 0.02, &rules) {
+            assert_eq!(frame.hits, rays.len());
+            for (a, b) in frame.rgb.iter().zip(&want) {
+                assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+            }
+        }
+    }
 
     /// A network of constant density σ = 2 (zero encoding, raw log-density bias ln 2): the
     /// network march and the march of cubes baked from it see the same σ (exact in f16), so
