@@ -449,7 +449,7 @@ pub fn teacher_query_targets(teacher: &Trainer, data: &Dataset, hits: &Hits, win
                 let mut acc = [[0.0f32; 4]; model::MAX_HITS];
                 for (a, p) in acc.iter_mut().zip(h.points()) {
                     let t_q = ray.dir.dot(p - ray.origin);
-                    for &(t, w, c) in samples.iter().filter(|s| (s.0 - t_q).abs() <= window) {
+                    for &(_, w, c) in samples.iter().filter(|s| (s.0 - t_q).abs() <= window) {
                         let sum = Vec3::from_slice(a) + w * c;
                         *a = [sum.x, sum.y, sum.z, a[3] + w];
                     }
