@@ -268,20 +268,101 @@ fn oracle_colour(rule: &OracleRule, samples: &[(f32, f32, Vec3)], alpha_c: f32, 
     }
 }
 
+/// Where an asset loses against its teacher, pixel by pixel: the asset's own march (its
+/// queries, blend weights `β` and coarse opacity) with colour or α swapped for the teacher's.
+/// A query's teacher colour is the teacher's colour averaged by weight over its samples
+/// within the rule's segment gap of the query (as [`crate::distill::teacher_query_targets`]);
+/// the teacher's α is `1 − T_end` of its own march.
+#[derive(Debug, Clone, Default)]
+pub struct SwapFrames {
+    /// The asset's hits, the teacher's colours and α: the ceiling of the asset's geometry.
+    pub teacher_colour_and_alpha: Vec<f32>,
+    /// The asset's hits and α, the teacher's colours: what the colour stage can still gain.
+    pub teacher_colour: Vec<f32>,
+    /// The asset's hits and colours, the teacher's α: what the α head can still gain.
+    pub teacher_alpha: Vec<f32>,
+    /// The asset's query points only: each teacher sample goes to its nearest query, which
+    /// gets their weight-averaged colour, blended by their weight (not the asset's `β`), with
+    /// the teacher's α: what the blend weights cost.
+    pub teacher_blend: Vec<f32>,
+}
+
+/// Renders `rays` three ways (see [`SwapFrames`]); rays the asset misses get the background
+/// in every frame, rays it hits where the teacher has no weight near a query take the
+/// teacher's colour at its heaviest sample for that query.
+pub fn render_swaps(teacher: &Trainer, asset: &nephele_renderer::Asset, rays: &[(Vec3, Vec3)], background: Vec3) -> SwapFrames {
+    let net = asset.mlp.kernel();
+    let settings = RenderSettings::default();
+    let window = asset.march.hits.gap_steps * asset.march.step;
+    let parts: Vec<[Vec<f32>; 4]> = rays
+        .par_chunks(teacher.model().rays_per_chunk.max(1))
+        .map(|chunk| {
+            let ngp_rays: Vec<NgpRay> = chunk.iter().map(|&(origin, dir)| NgpRay { origin, dir, background, jitter: 0.5 }).collect();
+            let mut out: [Vec<f32>; 4] = Default::default();
+            for (&(o, d), (samples, transmittance)) in chunk.iter().zip(teacher_samples(teacher, &ngp_rays)) {
+                let m = model::march_multi(&asset.density, o, d, asset.march.step, &settings, &asset.march.hits);
+                let pixels = if m.march.alpha_c < asset.march.alpha_min {
+                    [background; 4]
+                } else {
+                    let heaviest = samples.iter().fold((0.0f32, Vec3::ZERO), |best, &(_, w, c)| if w > best.0 { (w, c) } else { best });
+                    let (mut c_teacher, mut c_asset, mut alpha_asset) = (Vec3::ZERO, Vec3::ZERO, 0.0);
+                    for i in 0..m.count as usize {
+                        let t_q = m.t[i] * d.length_squared();
+                        let (sum, w) = samples.iter().filter(|s| (s.0 - t_q).abs() <= window).fold((Vec3::ZERO, 0.0f32), |(c, w), s| (c + s.1 * s.2, w + s.1));
+                        c_teacher += m.beta[i] * if w > 1e-3 { sum / w } else { heaviest.1 };
+                        // Over black the asset's pixel is α·c.
+                        let (premultiplied, a) = model::shade(asset, &net, o + m.t[i] * d, d, m.march.alpha_c, Vec3::ZERO);
+                        c_asset += m.beta[i] * if a > 1e-6 { premultiplied / a } else { Vec3::ZERO };
+                        alpha_asset += m.beta[i] * a;
+                    }
+                    let alpha_teacher = 1.0 - transmittance;
+                    let mut nearest = [(Vec3::ZERO, 0.0f32); model::MAX_HITS];
+                    for &(t, w, c) in &samples {
+                        let q = (0..m.count as usize).min_by(|&a, &b| (m.t[a] - t).abs().total_cmp(&(m.t[b] - t).abs())).unwrap_or(0);
+                        nearest[q] = (nearest[q].0 + w * c, nearest[q].1 + w);
+                    }
+                    let c_blend: Vec3 = (0..m.count as usize).map(|i| m.beta[i] * if nearest[i].1 > 1e-6 { nearest[i].0 / nearest[i].1 } else { heaviest.1 }).sum();
+                    let over = |c: Vec3, a: f32| a * c + (1.0 - a) * background;
+                    [over(c_teacher, alpha_teacher), over(c_teacher, alpha_asset), over(c_asset, alpha_teacher), over(c_blend, alpha_teacher)]
+                };
+                for (frame, p) in out.iter_mut().zip(pixels) {
+                    frame.extend_from_slice(&p.to_array());
+                }
+            }
+            out
+        })
+        .collect();
+    let mut frames = SwapFrames::default();
+    for [a, b, c, d] in parts {
+        frames.teacher_colour_and_alpha.extend(a);
+        frames.teacher_colour.extend(b);
+        frames.teacher_alpha.extend(c);
+        frames.teacher_blend.extend(d);
+    }
+    frames
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::TrainConfig;
+
+    /// A teacher of constant density σ = 2 (zero encoding, raw log-density bias ln 2) whose
+    /// colour depends on the view direction only.
+    fn constant_teacher() -> Trainer {
+        let mut teacher = Trainer::new(TrainConfig::tiny());
+        teacher.field.grid.params.fill(0.0);
+        let raw_bias = teacher.field.density_mlp.params().len() - nephele_renderer::ngp::field::GEO_FEATURES;
+        teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
+        teacher
+    }
 
     /// With a teacher whose colour depends on the view direction only (zero encoding,
     /// constant σ = 2), every oracle gives each ray the teacher's own pixel: all its samples
     /// have one colour, and α is the teacher's.
     #[test]
     fn oracles_of_a_one_colour_ray_are_the_teachers_pixel() {
-        let mut teacher = Trainer::new(TrainConfig::tiny());
-        teacher.field.grid.params.fill(0.0);
-        let raw_bias = teacher.field.density_mlp.params().len() - nephele_renderer::ngp::field::GEO_FEATURES;
-        teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
+        let teacher = constant_teacher();
         let rays: Vec<(Vec3, Vec3)> = (0..16)
             .map(|i| {
                 let a = i as f32 * 0.41;
@@ -301,16 +382,62 @@ mod tests {
         }
     }
 
+    /// With the same direction-coloured, constant-σ teacher and an asset whose density cubes
+    /// are baked from it (its colours and α from an unrelated procedural asset), the swaps
+    /// that take the teacher's colour and α give the teacher's own pixel wherever the asset
+    /// hits: every sample near every query has the ray's colour. Rays the asset misses get
+    /// the background in every frame.
+    #[test]
+    fn swaps_with_the_teachers_colour_and_alpha_give_the_teachers_pixel() {
+        let teacher = constant_teacher();
+        let cfg = crate::distill::DistillConfig { density_grid: 8, density_brick: 4, ..crate::distill::DistillConfig::tiny(1) };
+        let bounds = Aabb::cube(1.0);
+        let procedural = nephele_renderer::procedural::generate(&nephele_renderer::procedural::ProceduralConfig::small(nephele_renderer::procedural::Scene::Trio)).unwrap();
+        let mut asset = procedural.clone();
+        asset.density = crate::distill::bake_density(&teacher, bounds, &cfg);
+        asset.march.step = cfg.step(&bounds);
+        asset.march.hits = HitRule { tau: 0.1, max_hits: 3, gap_steps: 3.0 };
+        let rays: Vec<(Vec3, Vec3)> = (0..24)
+            .map(|i| {
+                let a = i as f32 * 0.29;
+                let o = Vec3::new(3.0 * a.cos(), 0.8 * (a * 1.7).sin(), 3.0 * a.sin());
+                (o, (Vec3::new(0.3 * a.sin(), 0.2, -0.1) - o).normalize())
+            })
+            .chain([(Vec3::new(0.0, 3.0, 5.0), Vec3::NEG_Z)])
+            .collect();
+        let bg = Vec3::new(0.2, 0.5, 0.9);
+        let teacher_pixels = teacher.render(&rays, bg);
+        let frames = render_swaps(&teacher, &asset, &rays, bg);
+        let settings = RenderSettings::default();
+        let mut hit = 0;
+        for (i, &(o, d)) in rays.iter().enumerate() {
+            let m = model::march_multi(&asset.density, o, d, asset.march.step, &settings, &asset.march.hits);
+            let want = if m.march.alpha_c >= asset.march.alpha_min {
+                hit += 1;
+                teacher_pixels[i].0
+            } else {
+                bg
+            };
+            for frame in [&frames.teacher_colour_and_alpha, &frames.teacher_blend] {
+                let got = Vec3::from_slice(&frame[3 * i..3 * i + 3]);
+                assert!((got - want).abs().max_element() < 1e-4, "ray {i}: {got} vs {want}");
+            }
+            if m.march.alpha_c < asset.march.alpha_min {
+                for frame in [&frames.teacher_colour, &frames.teacher_alpha] {
+                    assert_eq!(Vec3::from_slice(&frame[3 * i..3 * i + 3]), bg);
+                }
+            }
+        }
+        assert!(hit > 12 && hit < rays.len(), "{hit} of {} rays hit", rays.len());
+    }
+
     /// A network of constant density σ = 2 (zero encoding, raw log-density bias ln 2): the
     /// network march and the march of cubes baked from it see the same σ (exact in f16), so
     /// they find the same hits and coarse opacities; and α_c is 1 − exp(−σ·path) up to the
     /// early stop.
     #[test]
     fn network_march_agrees_with_cubes_baked_from_it() {
-        let mut teacher = Trainer::new(TrainConfig::tiny());
-        teacher.field.grid.params.fill(0.0);
-        let raw_bias = teacher.field.density_mlp.params().len() - nephele_renderer::ngp::field::GEO_FEATURES;
-        teacher.field.density_mlp.update(|p| p[raw_bias] = 2f32.ln());
+        let teacher = constant_teacher();
         let bounds = Aabb::cube(1.0);
         let cfg = crate::distill::DistillConfig { density_grid: 8, density_brick: 4, ..crate::distill::DistillConfig::tiny(1) };
         let density = crate::distill::bake_density(&teacher, bounds, &cfg);

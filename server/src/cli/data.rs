@@ -54,6 +54,11 @@ pub struct EvalArgs {
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
+    /// For an asset: the i-NGP checkpoint it was distilled from. Also scores the asset's own
+    /// hits with the teacher's colours and/or α, to show whether its geometry, its colour or
+    /// its α loses the most.
+    #[arg(long)]
+    teacher: Option<PathBuf>,
 }
 
 pub fn synth(args: SynthArgs) -> Result<()> {
@@ -86,6 +91,6 @@ pub fn dataset_info(args: DatasetInfoArgs) -> Result<()> {
 pub fn eval(args: EvalArgs) -> Result<()> {
     use super::train::{EvalOptions, eval};
     let split = args.split.parse().map_err(anyhow::Error::msg)?;
-    let EvalArgs { checkpoint, dataset, downscale, holdout_every, out, json, .. } = args;
-    eval(&EvalOptions { checkpoint, dataset, split, downscale, holdout_every, out, json }).map(|_| ())
+    let EvalArgs { checkpoint, dataset, downscale, holdout_every, out, json, teacher, .. } = args;
+    eval(&EvalOptions { checkpoint, dataset, split, downscale, holdout_every, out, json, teacher }).map(|_| ())
 }

@@ -18,6 +18,7 @@ use nephele_train::{
     TrainConfig, Trainer,
     dataset::{Dataset, LoadOptions, Split},
     distill::{self, DistillConfig, Distiller, geometry},
+    variants,
     trainer::eval::{psnr, ssim, write_comparison_png},
 };
 
@@ -569,6 +570,24 @@ pub struct EvalOptions {
     pub holdout_every: Option<usize>,
     pub out: Option<PathBuf>,
     pub json: bool,
+    /// For an asset: the i-NGP checkpoint it was distilled from, to split the asset's loss
+    /// into geometry, colour and α ([`SwapScores`]).
+    pub teacher: Option<PathBuf>,
+}
+
+/// Mean PSNR of an asset's own march with parts swapped for its teacher's
+/// ([`variants::render_swaps`]): how much each part of the asset costs.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SwapScores {
+    pub teacher: String,
+    /// The asset's hits, the teacher's colours and α.
+    pub teacher_colour_and_alpha_psnr: f64,
+    /// The asset's hits and α, the teacher's colours.
+    pub teacher_colour_psnr: f64,
+    /// The asset's hits and colours, the teacher's α.
+    pub teacher_alpha_psnr: f64,
+    /// The asset's query points; the teacher's weights split among them, its colours and α.
+    pub teacher_blend_psnr: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -596,6 +615,9 @@ pub struct EvalReport {
     pub views: Vec<ViewScore>,
     pub mean_psnr: f64,
     pub mean_ssim: f64,
+    /// With `--teacher`: the asset's loss split by part.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub swaps: Option<SwapScores>,
     pub seconds: f64,
 }
 
@@ -618,6 +640,12 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
     if let Some(dir) = &opts.out {
         std::fs::create_dir_all(dir).with_context(|| format!("creating output directory {}", dir.display()))?;
     }
+    let teacher = match (&opts.teacher, &model) {
+        (None, _) => None,
+        (Some(path), Model::Nolf(_)) => Some(Trainer::load_checkpoint(path, None).with_context(|| format!("loading the teacher {}", path.display()))?.0),
+        (Some(_), Model::Ngp(_)) => bail!("--teacher splits an asset's loss; {} is an i-NGP checkpoint", opts.checkpoint.display()),
+    };
+    let mut swaps = teacher.as_ref().map(|_| SwapScores { teacher: opts.teacher.as_ref().map(|p| p.display().to_string()).unwrap_or_default(), ..SwapScores::default() });
     let background = Vec3::ONE;
     let t = Instant::now();
     let bar = ProgressBar::new(data.images.len() as u64);
@@ -631,6 +659,13 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
             Model::Nolf(asset) => distill::render_image(asset, image, background),
         };
         let truth = image.composite_over(background);
+        if let (Some(teacher), Model::Nolf(asset), Some(sums)) = (&teacher, &model, &mut swaps) {
+            let f = variants::render_swaps(teacher, asset, &image.rays().collect::<Vec<_>>(), background);
+            sums.teacher_colour_and_alpha_psnr += psnr(&truth, &f.teacher_colour_and_alpha);
+            sums.teacher_colour_psnr += psnr(&truth, &f.teacher_colour);
+            sums.teacher_alpha_psnr += psnr(&truth, &f.teacher_alpha);
+            sums.teacher_blend_psnr += psnr(&truth, &f.teacher_blend);
+        }
         let comparison = match &opts.out {
             Some(dir) => {
                 let path = dir.join(format!("{}_{index:03}.png", opts.split));
@@ -666,6 +701,13 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
         ssim_definition: "11x11 Gaussian window (sigma 1.5), K1 0.01, K2 0.03, valid windows, mean over RGB channels",
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
         mean_ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
+        swaps: swaps.map(|s| SwapScores {
+            teacher_colour_and_alpha_psnr: s.teacher_colour_and_alpha_psnr / n,
+            teacher_colour_psnr: s.teacher_colour_psnr / n,
+            teacher_alpha_psnr: s.teacher_alpha_psnr / n,
+            teacher_blend_psnr: s.teacher_blend_psnr / n,
+            ..s
+        }),
         views,
         seconds: t.elapsed().as_secs_f64(),
     };
@@ -694,5 +736,11 @@ pub fn format_report(r: &EvalReport) -> String {
         s += &format!("| {} | {:.2} | {:.4} | {name} |\n", v.index, v.psnr, v.ssim);
     }
     s += &format!("mean PSNR {:.3} dB, mean SSIM {:.4} over {} views ({:.1} s)\n", r.mean_psnr, r.mean_ssim, r.views.len(), r.seconds);
+    if let Some(w) = &r.swaps {
+        s += &format!(
+            "\nThe asset's own hits with parts from its teacher {} (mean PSNR):\n| colour | α | PSNR dB |\n|---|---|---:|\n| asset | asset | {:.3} |\n| teacher | teacher | {:.3} |\n| teacher | asset | {:.3} |\n| asset | teacher | {:.3} |\n| teacher's, blended by its own weight near each query | teacher | {:.3} |\n",
+            w.teacher, r.mean_psnr, w.teacher_colour_and_alpha_psnr, w.teacher_colour_psnr, w.teacher_alpha_psnr, w.teacher_blend_psnr
+        );
+    }
     s
 }
