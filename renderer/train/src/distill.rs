@@ -470,10 +470,14 @@ pub fn teacher_query_targets(teacher: &Trainer, data: &Dataset, hits: &Hits, win
         .collect()
 }
 
+/// One ray's march by the teacher: its samples `(t, weight, colour)` front to back, and the
+/// transmittance left at the end.
+pub type TeacherMarch = (Vec<(f32, f32, Vec3)>, f32);
+
 /// The teacher's march along `rays` (one chunk): per ray, its samples front to back as
 /// `(t, weight, colour)`, with `t` along the ray's direction and weight `T·α`, and the
 /// transmittance left at the end (α = 1 − that).
-pub fn teacher_samples(teacher: &Trainer, rays: &[NgpRay]) -> Vec<(Vec<(f32, f32, Vec3)>, f32)> {
+pub fn teacher_samples(teacher: &Trainer, rays: &[NgpRay]) -> Vec<TeacherMarch> {
     let m = teacher.model();
     let delta = m.step_size();
     let out = m.forward_chunk(rays);
