@@ -381,11 +381,10 @@ fn prefetch<T>(v: &[T], at: usize) {
     }
 }
 
-/// Screen-space footprints of a view's live cells (or of blocks of them, [`LiveCells::blocks`]):
-/// the pixel rectangle each cell's
-/// projection can touch (one pixel of slack) and the ray-parameter interval it can occupy
-/// (distance from the camera to the cell, nearest and farthest, minus the ray origin's shift,
-/// with two steps of slack). A ray outside every footprint takes no sample in the reference
+/// Screen-space footprints of a view's live cells (or of blocks of them,
+/// [`LiveCells::blocks`]): the pixel rectangle each cell's projection can touch (one pixel
+/// of slack) and the ray-parameter interval it can occupy (distance from the camera to the
+/// cell, nearest and farthest, minus the ray origin's shift, with two steps of slack). A ray outside every footprint takes no sample in the reference
 /// march either; inside, no live cell lies outside the union of its footprints' intervals.
 struct Footprints {
     rects: Vec<CellRect>,
@@ -413,8 +412,8 @@ struct RayBounds {
 impl Footprints {
     /// `None` when some live cell reaches behind the camera (then every ray is marched whole).
     fn new(f: &RayFrame, live: &LiveCells, density: &TextureCubes, step: f32) -> Option<Self> {
-        let cells = &live.blocks;
         use glam::DVec3;
+        let cells = &live.blocks;
         let k = &f.intrinsics;
         let [c0, c1, c2] = f.object_from_camera.map(|c| c.as_dvec3());
         let t_shift = f.t_shift as f64;

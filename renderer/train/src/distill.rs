@@ -456,18 +456,21 @@ pub fn teacher_query_targets(teacher: &Trainer, data: &Dataset, hits: &Hits, win
             chunk.iter().zip(rays).zip(samples).map(move |((h, ray), (samples, _))| {
                 let mut acc = [[0.0f32; 4]; model::MAX_HITS];
                 for (a, p) in acc.iter_mut().zip(h.points()) {
-                    let t_q = ray.dir.dot(p - ray.origin);
-                    for &(_, w, c) in samples.iter().filter(|s| (s.0 - t_q).abs() <= window) {
-                        let sum = Vec3::from_slice(a) + w * c;
-                        *a = [sum.x, sum.y, sum.z, a[3] + w];
+                    if let Some((c, w)) = teacher_colour_near(&samples, ray.dir.dot(p - ray.origin), window) {
+                        *a = [c.x, c.y, c.z, w.min(1.0)];
                     }
-                    let w = a[3];
-                    *a = if w > 1e-3 { [a[0] / w, a[1] / w, a[2] / w, w.min(1.0)] } else { [0.0; 4] };
                 }
                 acc
             })
         })
         .collect()
+}
+
+/// The teacher's colour averaged by weight over its samples within `window` of `t_q` along
+/// the ray, and that weight; `None` where the weight there is below 10⁻³.
+pub fn teacher_colour_near(samples: &[(f32, f32, Vec3)], t_q: f32, window: f32) -> Option<(Vec3, f32)> {
+    let (sum, w) = samples.iter().filter(|s| (s.0 - t_q).abs() <= window).fold((Vec3::ZERO, 0.0f32), |(c, w), s| (c + s.1 * s.2, w + s.1));
+    (w > 1e-3).then(|| (sum / w, w))
 }
 
 /// One ray's march by the teacher: its samples `(t, weight, colour)` front to back, and the

@@ -27,7 +27,7 @@ use nephele_renderer::{
 use rayon::prelude::*;
 
 use crate::{
-    distill::{MoreHits, Student, StudentRay, teacher_samples},
+    distill::{MoreHits, Student, StudentRay, teacher_colour_near, teacher_samples},
     trainer::Trainer,
 };
 
@@ -281,13 +281,13 @@ pub struct SwapFrames {
     pub teacher_colour: Vec<f32>,
     /// The asset's hits and colours, the teacher's α: what the α head can still gain.
     pub teacher_alpha: Vec<f32>,
-    /// The asset's query points only: each teacher sample goes to its nearest query, which
-    /// gets their weight-averaged colour, blended by their weight (not the asset's `β`), with
-    /// the teacher's α: what the blend weights cost.
-    pub teacher_blend: Vec<f32>,
+    /// Like `teacher_colour_and_alpha`, but each teacher sample goes to its nearest query
+    /// (instead of those within the gap), which takes their weight-averaged colour; blended
+    /// by the asset's `β`, with the teacher's α.
+    pub teacher_nearest: Vec<f32>,
 }
 
-/// Renders `rays` three ways (see [`SwapFrames`]); rays the asset misses get the background
+/// Renders `rays` four ways (see [`SwapFrames`]); rays the asset misses get the background
 /// in every frame, rays it hits where the teacher has no weight near a query take the
 /// teacher's colour at its heaviest sample for that query.
 pub fn render_swaps(teacher: &Trainer, asset: &nephele_renderer::Asset, rays: &[(Vec3, Vec3)], background: Vec3) -> SwapFrames {
@@ -307,11 +307,10 @@ pub fn render_swaps(teacher: &Trainer, asset: &nephele_renderer::Asset, rays: &[
                     let heaviest = samples.iter().fold((0.0f32, Vec3::ZERO), |best, &(_, w, c)| if w > best.0 { (w, c) } else { best });
                     let (mut c_teacher, mut c_asset, mut alpha_asset) = (Vec3::ZERO, Vec3::ZERO, 0.0);
                     for i in 0..m.count as usize {
-                        let t_q = m.t[i] * d.length_squared();
-                        let (sum, w) = samples.iter().filter(|s| (s.0 - t_q).abs() <= window).fold((Vec3::ZERO, 0.0f32), |(c, w), s| (c + s.1 * s.2, w + s.1));
-                        c_teacher += m.beta[i] * if w > 1e-3 { sum / w } else { heaviest.1 };
+                        let p = o + m.t[i] * d;
+                        c_teacher += m.beta[i] * teacher_colour_near(&samples, d.dot(p - o), window).map_or(heaviest.1, |(c, _)| c);
                         // Over black the asset's pixel is α·c.
-                        let (premultiplied, a) = model::shade(asset, &net, o + m.t[i] * d, d, m.march.alpha_c, Vec3::ZERO);
+                        let (premultiplied, a) = model::shade(asset, &net, p, d, m.march.alpha_c, Vec3::ZERO);
                         c_asset += m.beta[i] * if a > 1e-6 { premultiplied / a } else { Vec3::ZERO };
                         alpha_asset += m.beta[i] * a;
                     }
@@ -321,9 +320,9 @@ pub fn render_swaps(teacher: &Trainer, asset: &nephele_renderer::Asset, rays: &[
                         let q = (0..m.count as usize).min_by(|&a, &b| (m.t[a] - t).abs().total_cmp(&(m.t[b] - t).abs())).unwrap_or(0);
                         nearest[q] = (nearest[q].0 + w * c, nearest[q].1 + w);
                     }
-                    let c_blend: Vec3 = (0..m.count as usize).map(|i| m.beta[i] * if nearest[i].1 > 1e-6 { nearest[i].0 / nearest[i].1 } else { heaviest.1 }).sum();
+                    let c_nearest: Vec3 = (0..m.count as usize).map(|i| m.beta[i] * if nearest[i].1 > 1e-6 { nearest[i].0 / nearest[i].1 } else { heaviest.1 }).sum();
                     let over = |c: Vec3, a: f32| a * c + (1.0 - a) * background;
-                    [over(c_teacher, alpha_teacher), over(c_teacher, alpha_asset), over(c_asset, alpha_teacher), over(c_blend, alpha_teacher)]
+                    [over(c_teacher, alpha_teacher), over(c_teacher, alpha_asset), over(c_asset, alpha_teacher), over(c_nearest, alpha_teacher)]
                 };
                 for (frame, p) in out.iter_mut().zip(pixels) {
                     frame.extend_from_slice(&p.to_array());
@@ -337,7 +336,7 @@ pub fn render_swaps(teacher: &Trainer, asset: &nephele_renderer::Asset, rays: &[
         frames.teacher_colour_and_alpha.extend(a);
         frames.teacher_colour.extend(b);
         frames.teacher_alpha.extend(c);
-        frames.teacher_blend.extend(d);
+        frames.teacher_nearest.extend(d);
     }
     frames
 }
@@ -418,7 +417,7 @@ mod tests {
             } else {
                 bg
             };
-            for frame in [&frames.teacher_colour_and_alpha, &frames.teacher_blend] {
+            for frame in [&frames.teacher_colour_and_alpha, &frames.teacher_nearest] {
                 let got = Vec3::from_slice(&frame[3 * i..3 * i + 3]);
                 assert!((got - want).abs().max_element() < 1e-4, "ray {i}: {got} vs {want}");
             }

@@ -586,8 +586,8 @@ pub struct SwapScores {
     pub teacher_colour_psnr: f64,
     /// The asset's hits and colours, the teacher's α.
     pub teacher_alpha_psnr: f64,
-    /// The asset's query points; the teacher's weights split among them, its colours and α.
-    pub teacher_blend_psnr: f64,
+    /// The same, each teacher sample's colour going to its nearest query.
+    pub teacher_nearest_psnr: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -645,7 +645,7 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
         (Some(path), Model::Nolf(_)) => Some(Trainer::load_checkpoint(path, None).with_context(|| format!("loading the teacher {}", path.display()))?.0),
         (Some(_), Model::Ngp(_)) => bail!("--teacher splits an asset's loss; {} is an i-NGP checkpoint", opts.checkpoint.display()),
     };
-    let mut swaps = teacher.as_ref().map(|_| SwapScores { teacher: opts.teacher.as_ref().map(|p| p.display().to_string()).unwrap_or_default(), ..SwapScores::default() });
+    let mut swaps = opts.teacher.as_ref().filter(|_| teacher.is_some()).map(|p| SwapScores { teacher: p.display().to_string(), ..SwapScores::default() });
     let background = Vec3::ONE;
     let t = Instant::now();
     let bar = ProgressBar::new(data.images.len() as u64);
@@ -664,7 +664,7 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
             sums.teacher_colour_and_alpha_psnr += psnr(&truth, &f.teacher_colour_and_alpha);
             sums.teacher_colour_psnr += psnr(&truth, &f.teacher_colour);
             sums.teacher_alpha_psnr += psnr(&truth, &f.teacher_alpha);
-            sums.teacher_blend_psnr += psnr(&truth, &f.teacher_blend);
+            sums.teacher_nearest_psnr += psnr(&truth, &f.teacher_nearest);
         }
         let comparison = match &opts.out {
             Some(dir) => {
@@ -705,7 +705,7 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
             teacher_colour_and_alpha_psnr: s.teacher_colour_and_alpha_psnr / n,
             teacher_colour_psnr: s.teacher_colour_psnr / n,
             teacher_alpha_psnr: s.teacher_alpha_psnr / n,
-            teacher_blend_psnr: s.teacher_blend_psnr / n,
+            teacher_nearest_psnr: s.teacher_nearest_psnr / n,
             ..s
         }),
         views,
@@ -738,8 +738,8 @@ pub fn format_report(r: &EvalReport) -> String {
     s += &format!("mean PSNR {:.3} dB, mean SSIM {:.4} over {} views ({:.1} s)\n", r.mean_psnr, r.mean_ssim, r.views.len(), r.seconds);
     if let Some(w) = &r.swaps {
         s += &format!(
-            "\nThe asset's own hits with parts from its teacher {} (mean PSNR):\n| colour | α | PSNR dB |\n|---|---|---:|\n| asset | asset | {:.3} |\n| teacher | teacher | {:.3} |\n| teacher | asset | {:.3} |\n| asset | teacher | {:.3} |\n| teacher's, blended by its own weight near each query | teacher | {:.3} |\n",
-            w.teacher, r.mean_psnr, w.teacher_colour_and_alpha_psnr, w.teacher_colour_psnr, w.teacher_alpha_psnr, w.teacher_blend_psnr
+            "\nThe asset's own hits with parts from its teacher {} (mean PSNR):\n| colour | α | PSNR dB |\n|---|---|---:|\n| asset | asset | {:.3} |\n| teacher | teacher | {:.3} |\n| teacher | asset | {:.3} |\n| asset | teacher | {:.3} |\n| teacher's, each sample to its nearest query | teacher | {:.3} |\n",
+            w.teacher, r.mean_psnr, w.teacher_colour_and_alpha_psnr, w.teacher_colour_psnr, w.teacher_alpha_psnr, w.teacher_nearest_psnr
         );
     }
     s
