@@ -83,6 +83,14 @@ fn generate_info_and_bench_print_tables() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("| cpu | 32×32 |") && text.contains("| cpu | 17×9 |"), "{text}");
+    // A knob is timed beside the default rule, with its PSNR against the default's frame.
+    let o = nephele(&["bench", "render", "--asset", "builtin:trio-small", "--sizes", "64x48", "--backends", "cpu", "--runs", "1", "--early-stop", "0.5"]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("PSNR vs default rule") && text.contains("| cpu | default | 64×48 |"), "{text}");
+    let knob_row = text.lines().find(|l| l.starts_with("| cpu | early stop 0.5 | 64×48 |")).unwrap_or_else(|| panic!("{text}"));
+    let psnr: f64 = knob_row.trim_end_matches(" |").rsplit("| ").next().unwrap().parse().unwrap_or_else(|e| panic!("{knob_row}: {e}"));
+    assert!(psnr.is_finite() && psnr > 0.0 && psnr < 60.0, "T < 0.5 stops early enough to change the frame, and the column says so: {knob_row}");
 }
 
 #[test]
@@ -110,6 +118,8 @@ fn bad_input_is_a_clear_error() {
         (vec!["render", "builtin:trio-small", "--hit-tau", "2"], "--hit-tau in [0, 1]"),
         (vec!["render", "builtin:trio-small", "--max-hits", "0"], "--max-hits in 1..=3"),
         (vec!["serve", "--hit-tau", "NaN"], "--hit-tau in [0, 1]"),
+        (vec!["render", "builtin:trio-small", "--early-stop", "1"], "--early-stop in [0, 1)"),
+        (vec!["serve", "--early-stop", "NaN"], "--early-stop in [0, 1)"),
         (vec!["replay", "--trace", "/nonexistent.json"], "nonexistent.json"),
     ] {
         let o = nephele(&args);

@@ -1395,13 +1395,19 @@ impl Distiller {
 /// [`model::march`] and [`model::shade`], unquantised) over `background`: interleaved RGB,
 /// row-major, the layout of [`crate::dataset::DatasetImage::composite_over`].
 pub fn render_image(asset: &Asset, image: &crate::dataset::DatasetImage, background: Vec3) -> Vec<f32> {
+    render_image_with(asset, image, background, &RenderSettings::default())
+}
+
+/// [`render_image`] with render knobs (step scale, hit rule, early stop).
+pub fn render_image_with(asset: &Asset, image: &crate::dataset::DatasetImage, background: Vec3, settings: &RenderSettings) -> Vec<f32> {
     let net = asset.mlp.kernel();
-    let settings = RenderSettings::default();
+    let rule = settings.hit_rule(&asset.march.hits);
+    let step = asset.march.step * settings.step_scale;
     let rays: Vec<(Vec3, Vec3)> = image.rays().collect();
     rays.par_iter()
         .flat_map_iter(|&(o, d)| {
-            let m = model::march_multi(&asset.density, o, d, asset.march.step, &settings, &asset.march.hits);
-            let rgb = if m.march.alpha_c < asset.march.alpha_min { background } else { model::shade_multi(asset, &net, &m, o, d, background).0 };
+            let m = model::march_multi(&asset.density, o, d, step, settings, &rule);
+            let rgb = if m.march.alpha_c < settings.alpha_min.unwrap_or(asset.march.alpha_min) { background } else { model::shade_multi(asset, &net, &m, o, d, background).0 };
             rgb.to_array()
         })
         .collect()

@@ -188,7 +188,10 @@ pub fn run(what: BenchCommand) -> Result<()> {
             Ok(())
         }
         BenchCommand::Render { asset, sizes, backends, runs, distance, batch, knobs } => {
+            // With knobs set, the default rule is timed beside them (frames alternating), and
+            // their frame's PSNR against its frame is printed.
             let settings = knobs.settings()?;
+            let rules = if settings == RenderSettings::default() { vec![settings] } else { vec![RenderSettings::default(), settings] };
             let a = load_asset(&asset)?;
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
             let mut rows = Vec::new();
@@ -196,7 +199,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
             for b in backends {
                 let backend = make_backend(b)?;
                 eprintln!("benchmarking {} ...", backend.name());
-                rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance, &settings)?);
+                rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance, &rules)?);
                 if batch > 1 {
                     batches.extend(bench_batch(backend.as_ref(), a.clone(), &sizes, runs, distance, batch, &settings)?);
                 }
@@ -281,6 +284,8 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
 
 pub struct RenderBenchRow {
     pub backend: String,
+    /// The render knobs, in words ([`describe_rule`]).
+    pub rule: String,
     pub width: u32,
     pub height: u32,
     pub march_ms: f64,
@@ -293,44 +298,80 @@ pub struct RenderBenchRow {
     pub macs_per_query: u64,
     /// Density samples per ray (CPU backends; 0 where not counted).
     pub samples_per_ray: f64,
+    /// PSNR of the frame against the same view under the default rule, when the knobs differ.
+    pub psnr_vs_first: Option<f64>,
 }
 
-/// Median of `runs` renders of an orbit view at each size (after one warm-up).
+/// Median of `runs` renders of an orbit view at each size (after one warm-up), for each of
+/// `rules`, their frames alternating so that every rule sees the same machine. Rows after the
+/// first rule's carry their PSNR against its frame (the trade of a speed-for-accuracy knob).
 pub fn bench_render(
     backend: &dyn Backend,
     asset: std::sync::Arc<nephele_renderer::Asset>,
     sizes: &[(u32, u32)],
     runs: usize,
     distance: f64,
-    settings: &RenderSettings,
+    rules: &[RenderSettings],
 ) -> Result<Vec<RenderBenchRow>> {
     let prepared = backend.prepare(asset)?;
     let mut rows = Vec::new();
     for &(w, h) in sizes {
         let view = View::orbit(DVec3::ZERO, distance, 35.0, 25.0, Intrinsics::from_fov_x(w, h, 0.69));
         let req = [ViewRequest::new(view)];
-        prepared.render(&req, settings)?;
-        let mut samples = Vec::new();
+        let frames: Vec<Vec<u8>> = rules.iter().map(|s| Ok(prepared.render(&req, s)?.frames.remove(0).rgba)).collect::<Result<_>>()?;
+        let mut samples = vec![Vec::new(); rules.len()];
         for _ in 0..runs.max(1) {
-            samples.push(prepared.render(&req, settings)?.stats);
+            for (rule, out) in rules.iter().zip(&mut samples) {
+                out.push(prepared.render(&req, rule)?.stats);
+            }
         }
-        samples.sort_by(|a, b| a.total_ms.total_cmp(&b.total_ms));
-        let s = samples[samples.len() / 2];
-        rows.push(RenderBenchRow {
-            backend: backend.name(),
-            width: w,
-            height: h,
-            march_ms: s.march_ms,
-            shade_ms: s.shade_ms,
-            total_ms: s.total_ms,
-            rays_per_s: s.rays as f64 / (s.total_ms / 1e3),
-            hit_fraction: s.hits as f64 / s.rays.max(1) as f64,
-            queries: s.queries,
-            macs_per_query: prepared.asset().mlp.macs(),
-            samples_per_ray: s.samples as f64 / s.rays.max(1) as f64,
-        });
+        for (i, (rule, mut samples)) in rules.iter().zip(samples).enumerate() {
+            samples.sort_by(|a, b| a.total_ms.total_cmp(&b.total_ms));
+            let s = samples[samples.len() / 2];
+            rows.push(RenderBenchRow {
+                backend: backend.name(),
+                rule: describe_rule(rule),
+                width: w,
+                height: h,
+                march_ms: s.march_ms,
+                shade_ms: s.shade_ms,
+                total_ms: s.total_ms,
+                rays_per_s: s.rays as f64 / (s.total_ms / 1e3),
+                hit_fraction: s.hits as f64 / s.rays.max(1) as f64,
+                queries: s.queries,
+                macs_per_query: prepared.asset().mlp.macs(),
+                samples_per_ray: s.samples as f64 / s.rays.max(1) as f64,
+                psnr_vs_first: (i > 0).then(|| psnr_u8(&frames[i], &frames[0])),
+            });
+        }
     }
     Ok(rows)
+}
+
+/// The knobs of `s` that differ from the default rule, in words ("default" for none).
+fn describe_rule(s: &RenderSettings) -> String {
+    let d = RenderSettings::default();
+    let mut parts = Vec::new();
+    if s.step_scale != d.step_scale {
+        parts.push(format!("step ×{}", s.step_scale));
+    }
+    if let Some(t) = s.hit_tau {
+        parts.push(format!("τ = {t}"));
+    }
+    if let Some(m) = s.max_hits {
+        parts.push(format!("≤ {m} hits"));
+    }
+    if s.early_stop != d.early_stop {
+        parts.push(format!("early stop {}", s.early_stop));
+    }
+    if parts.is_empty() { "default".into() } else { parts.join(", ") }
+}
+
+/// PSNR (dB) between two RGBA8 frames of one size, over all four channels; ∞ when equal.
+fn psnr_u8(a: &[u8], b: &[u8]) -> f64 {
+    let se: f64 = a.iter().zip(b).map(|(x, y)| ((*x as f64 - *y as f64) / 255.0).powi(2)).sum();
+    let mse = se / a.len().max(1) as f64;
+    if mse == 0.0 { f64::INFINITY } else { -10.0 * mse.log10() }
 }
 
 /// One row of `bench render --batch`: ms per view in one call and one view per call.
@@ -387,15 +428,19 @@ pub fn format_table(rows: &[RenderBenchRow]) -> String {
 /// how far the frame is above that floor.
 pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>) -> String {
     let mut out = String::new();
-    let _ = write!(out, "| backend | size | ray-march ms | network ms | total ms | Mrays/s | hit fraction | samples/ray | queries/hit |");
-    let _ = writeln!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor |" } else { "" });
-    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|{}", if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" });
+    // The rule and PSNR columns only when some row has knobs set.
+    let rules = rows.iter().any(|r| r.rule != "default");
+    let _ = write!(out, "| backend |{} size | ray-march ms | network ms | total ms | Mrays/s | hit fraction | samples/ray | queries/hit |", if rules { " rule |" } else { "" });
+    let _ = write!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor |" } else { "" });
+    let _ = writeln!(out, "{}", if rules { " PSNR vs default rule dB |" } else { "" });
+    let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" }, if rules { "---:|" } else { "" });
     for r in rows {
         let hits = (r.hit_fraction * (r.width as f64 * r.height as f64)).max(1.0);
         let _ = write!(
             out,
-            "| {} | {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} | {:.1} | {:.2} |",
+            "| {} |{} {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} | {:.1} | {:.2} |",
             r.backend,
+            if rules { format!(" {} |", r.rule) } else { String::new() },
             r.width,
             r.height,
             r.march_ms,
@@ -411,6 +456,9 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
             let rate = gflop / (r.shade_ms / 1e3).max(1e-9);
             let floor_ms = gflop / peak * 1e3;
             let _ = write!(out, " {rate:.1} | {:.1}% | {floor_ms:.2} | {:.1}× |", 100.0 * rate / peak, r.total_ms / floor_ms.max(1e-9));
+        }
+        if rules {
+            let _ = write!(out, " {} |", r.psnr_vs_first.map_or("–".into(), |p| format!("{p:.1}")));
         }
         let _ = writeln!(out);
     }

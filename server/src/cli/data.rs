@@ -59,6 +59,9 @@ pub struct EvalArgs {
     /// its α loses the most.
     #[arg(long)]
     teacher: Option<PathBuf>,
+    /// An asset's render knobs (the held-out score of a speed-for-accuracy setting).
+    #[command(flatten)]
+    knobs: super::RenderKnobs,
 }
 
 pub fn synth(args: SynthArgs) -> Result<()> {
@@ -91,6 +94,7 @@ pub fn dataset_info(args: DatasetInfoArgs) -> Result<()> {
 pub fn eval(args: EvalArgs) -> Result<()> {
     use super::train::{EvalOptions, eval};
     let split = args.split.parse().map_err(anyhow::Error::msg)?;
+    let settings = args.knobs.settings()?;
     let EvalArgs { checkpoint, dataset, downscale, holdout_every, out, json, teacher, .. } = args;
-    eval(&EvalOptions { checkpoint, dataset, split, downscale, holdout_every, out, json, teacher }).map(|_| ())
+    eval(&EvalOptions { checkpoint, dataset, split, downscale, holdout_every, out, json, teacher, settings }).map(|_| ())
 }

@@ -573,6 +573,9 @@ pub struct EvalOptions {
     /// For an asset: the i-NGP checkpoint it was distilled from, to split the asset's loss
     /// into geometry, colour and α ([`SwapScores`]).
     pub teacher: Option<PathBuf>,
+    /// What an asset renders with (its knobs: step, hit rule, early stop); an i-NGP
+    /// checkpoint renders with its own settings.
+    pub settings: nephele_renderer::RenderSettings,
 }
 
 /// Mean PSNR of an asset's own march with parts swapped for its teacher's
@@ -656,7 +659,7 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
     for (index, image) in data.images.iter().enumerate() {
         let render = match &model {
             Model::Ngp(trainer) => trainer.render_image(image, background),
-            Model::Nolf(asset) => distill::render_image(asset, image, background),
+            Model::Nolf(asset) => distill::render_image_with(asset, image, background, &opts.settings),
         };
         let truth = image.composite_over(background);
         if let (Some(teacher), Model::Nolf(asset), Some(sums)) = (&teacher, &model, &mut swaps) {
