@@ -117,6 +117,14 @@ fn train_resume_and_eval_end_to_end() {
     let teacher = ok(&["eval", &dir.path("full.train/ngp.ckpt"), &data, "--json"]);
     assert_eq!(teacher["model"], "i-NGP checkpoint");
     assert!((teacher["mean_psnr"].as_f64().unwrap() - ngp_psnr).abs() < 1e-9);
+    // Render knobs change the asset's score (a ray stopped at T < 0.5 keeps half its opacity
+    // budget unspent), and are refused for an i-NGP checkpoint, whose march they do not set.
+    let knob = ok(&["eval", &dir.path("full.nolf"), &data, "--split", "test", "--early-stop", "0.5", "--json"]);
+    let knob_psnr = knob["mean_psnr"].as_f64().unwrap();
+    assert!(knob_psnr.is_finite() && (knob_psnr - mean).abs() > 1e-6, "{knob_psnr} vs {mean}");
+    let o = nephele(&["eval", &dir.path("full.train/ngp.ckpt"), &data, "--early-stop", "0.01"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && stderr.contains("i-NGP checkpoint") && !stderr.contains("panicked"), "{stderr}");
 
     // The asset serves: `nephele info` reads it and reports its memory.
     let o = nephele(&["info", &dir.path("full.nolf")]);

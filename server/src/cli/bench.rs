@@ -341,7 +341,7 @@ pub fn bench_render(
                 queries: s.queries,
                 macs_per_query: prepared.asset().mlp.macs(),
                 samples_per_ray: s.samples as f64 / s.rays.max(1) as f64,
-                psnr_vs_first: (i > 0).then(|| psnr_u8(&frames[i], &frames[0])),
+                psnr_vs_first: (i > 0).then(|| crate::client::replay::psnr_rgb(&frames[i], &frames[0])),
             });
         }
     }
@@ -365,13 +365,6 @@ fn describe_rule(s: &RenderSettings) -> String {
         parts.push(format!("early stop {}", s.early_stop));
     }
     if parts.is_empty() { "default".into() } else { parts.join(", ") }
-}
-
-/// PSNR (dB) between two RGBA8 frames of one size, over all four channels; ∞ when equal.
-fn psnr_u8(a: &[u8], b: &[u8]) -> f64 {
-    let se: f64 = a.iter().zip(b).map(|(x, y)| ((*x as f64 - *y as f64) / 255.0).powi(2)).sum();
-    let mse = se / a.len().max(1) as f64;
-    if mse == 0.0 { f64::INFINITY } else { -10.0 * mse.log10() }
 }
 
 /// One row of `bench render --batch`: ms per view in one call and one view per call.

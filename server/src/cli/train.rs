@@ -648,6 +648,9 @@ pub fn eval(opts: &EvalOptions) -> Result<EvalReport> {
         (Some(path), Model::Nolf(_)) => Some(Trainer::load_checkpoint(path, None).with_context(|| format!("loading the teacher {}", path.display()))?.0),
         (Some(_), Model::Ngp(_)) => bail!("--teacher splits an asset's loss; {} is an i-NGP checkpoint", opts.checkpoint.display()),
     };
+    if matches!(model, Model::Ngp(_)) && opts.settings != nephele_renderer::RenderSettings::default() {
+        bail!("render knobs (--step-scale, --hit-tau, --max-hits, --early-stop) set an asset's march; {} is an i-NGP checkpoint", opts.checkpoint.display());
+    }
     let mut swaps = opts.teacher.as_ref().filter(|_| teacher.is_some()).map(|p| SwapScores { teacher: p.display().to_string(), ..SwapScores::default() });
     let background = Vec3::ONE;
     let t = Instant::now();
