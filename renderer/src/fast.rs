@@ -12,10 +12,12 @@
 //!   read two corners at a time — and a vector `exp`) and applies the rule to it; a lane in
 //!   a dead cell jumps to where its ray leaves the largest aligned dead block of cells
 //!   around it (up to 8 cells per side), a finished lane takes the band's next pixel. The
-//!   rays' dependent reads overlap, and the steps have no branch on the data. Without AVX2
-//!   (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples [`BATCH`] at a time,
-//!   taken front to back by the same rule ([`Scan`]). Both give the same frames to the bit
-//!   (tested). σ at each sample is the reference's to the bit; the
+//!   rays' dependent reads overlap, and the steps have no branch on the data. Where the CPU
+//!   has AVX-512, the same 32 rays step as two groups of 16 lanes (`v4`: mask registers
+//!   instead of blends, 9–10% faster per lego frame; `NEPHELE_MARCH=avx2` keeps the groups
+//!   of 8). Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
+//!   [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). All three give
+//!   the same frames to the bit (tested). σ at each sample is the reference's to the bit; the
 //!   only difference is which of two touching cells a sample exactly on their shared face
 //!   belongs to (the reference follows its DDA, this the sample's position), measured
 //!   against the reference in the tests and in `bench render`.
@@ -65,10 +67,7 @@ impl Backend for FastCpuBackend {
         let live = LiveCells::new(&asset.density);
         let hash = PshBricks::new(&asset.psh);
         let diffuse = DiffuseBytes::new(&asset.diffuse);
-        // `NEPHELE_MARCH=ray`: the per-ray march instead of the wavefront (for side-by-side
-        // measurements).
-        let wavefront = std::env::var("NEPHELE_MARCH").map_or(true, |v| v != "ray");
-        Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse, wavefront }))
+        Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse, march: March::detect() }))
     }
 }
 
@@ -78,9 +77,45 @@ struct FastPrepared {
     live: LiveCells,
     hash: PshBricks,
     diffuse: Option<DiffuseBytes>,
-    /// March the band's rays 32 at a time, one per lane ([`v3::march_wave`]), where the CPU
-    /// has AVX2; else (or with `NEPHELE_MARCH=ray`) one ray at a time along its lattice.
-    wavefront: bool,
+    march: March,
+}
+
+/// How a band's rays are marched (all give the same frames to the bit; tested).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum March {
+    /// One ray at a time along its lattice ([`FastPrepared::march`]): CPUs without AVX2.
+    Ray,
+    /// 32 rays at a time, one per lane, in four groups of 8 AVX2 lanes ([`v3::march_wave`]).
+    Avx2,
+    /// The same 32 rays in two groups of 16 AVX-512 lanes ([`v4::march_wave`]).
+    Avx512,
+}
+
+/// Whether the CPU has what [`v4`] is compiled for.
+fn wide_lanes() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::is_x86_feature_detected as has;
+        has!("avx512f") && has!("avx512vl") && has!("avx512bw") && has!("avx512dq") && has!("avx2") && has!("fma") && has!("f16c") && has!("bmi2") && has!("lzcnt")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+impl March {
+    /// The widest march this CPU has; `NEPHELE_MARCH=ray|avx2` caps it (for side-by-side
+    /// measurements), as does `NEPHELE_SIMD`.
+    fn detect() -> Self {
+        use crate::mlp::simd::{Level, level};
+        let cap = std::env::var("NEPHELE_MARCH").unwrap_or_default();
+        let avx512 = level() == Level::Avx512 && wide_lanes();
+        match level() {
+            _ if cap == "ray" => Self::Ray,
+            Level::Portable => Self::Ray,
+            _ if avx512 && cap != "avx2" => Self::Avx512,
+            _ => Self::Avx2,
+        }
+    }
 }
 
 /// 8-bit diffuse cubes kept as their bytes (a quarter of the f32 copy's cache footprint);
@@ -628,19 +663,20 @@ impl FastPrepared {
         };
         let mut marched = false;
         #[cfg(target_arch = "x86_64")]
-        if V && self.wavefront {
+        if V && self.march != March::Ray {
             #[allow(unsafe_code)]
-            // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`).
+            // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`), and
+            // `march` is `Avx512` only where it has AVX-512 F/VL/BW/DQ too (`March::detect`).
             unsafe {
                 let gap_t = rule.gap_steps * step;
-                if rule.one_hit() {
-                    v3::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m)));
-                } else {
-                    // The lane's segments go to `choose`, fresh ones stay for its next ray.
-                    let fresh = Segments::new(gap_t);
-                    v3::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, segments| {
-                        take(i, o, d, std::mem::replace(segments, fresh.clone()).choose(m, rule))
-                    });
+                // The lane's segments go to `choose`, fresh ones stay for its next ray.
+                let fresh = Segments::new(gap_t);
+                let mut multi = |i, o, d, m, segments: &mut Segments| take(i, o, d, std::mem::replace(segments, fresh.clone()).choose(m, rule));
+                match (self.march == March::Avx512, rule.one_hit()) {
+                    (true, true) => v4::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m))),
+                    (true, false) => v4::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, &mut multi),
+                    (false, true) => v3::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m))),
+                    (false, false) => v3::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, &mut multi),
                 }
             }
             marched = true;
@@ -1025,38 +1061,38 @@ mod v3 {
 
     /// The lanes of [`march_wave`]: each one's ray, lattice and scan state.
     #[derive(Default)]
-    struct Wave {
-        o: [[f32; LANES]; 3],
-        d: [[f32; LANES]; 3],
+    pub(super) struct Wave {
+        pub(super) o: [[f32; LANES]; 3],
+        pub(super) d: [[f32; LANES]; 3],
         /// Per axis, `(size[a] / res) / d[a]`: ray parameter per fine-grid unit (+∞
         /// where the ray is parallel to the axis).
-        t_per_fine: [[f32; LANES]; 3],
+        pub(super) t_per_fine: [[f32; LANES]; 3],
         /// The ray parameter where it enters the box (the lattice's origin).
-        t0: [f32; LANES],
+        pub(super) t0: [f32; LANES],
         /// The next lattice sample, and the end of the ray's samples.
-        k: [i32; LANES],
-        k_end: [i32; LANES],
-        transmittance: [f32; LANES],
-        w_max: [f32; LANES],
-        t_hit: [f32; LANES],
-        samples: [u32; LANES],
+        pub(super) k: [i32; LANES],
+        pub(super) k_end: [i32; LANES],
+        pub(super) transmittance: [f32; LANES],
+        pub(super) w_max: [f32; LANES],
+        pub(super) t_hit: [f32; LANES],
+        pub(super) samples: [u32; LANES],
     }
 
     /// The open segment of each lane's ray ([`Segments`]' open run, kept in vectors).
     #[derive(Default)]
-    struct Runs {
+    pub(super) struct Runs {
         /// All ones where the lane has an open run, and where it holds the heaviest sample.
-        open: [i32; LANES],
-        primary: [i32; LANES],
-        weight: [f32; LANES],
-        peak_w: [f32; LANES],
-        peak_t: [f32; LANES],
-        first_t: [f32; LANES],
-        last_t: [f32; LANES],
+        pub(super) open: [i32; LANES],
+        pub(super) primary: [i32; LANES],
+        pub(super) weight: [f32; LANES],
+        pub(super) peak_w: [f32; LANES],
+        pub(super) peak_t: [f32; LANES],
+        pub(super) first_t: [f32; LANES],
+        pub(super) last_t: [f32; LANES],
     }
 
     impl Runs {
-        fn segment(&self, l: usize) -> Segment {
+        pub(super) fn segment(&self, l: usize) -> Segment {
             Segment { weight: self.weight[l], peak_w: self.peak_w[l], peak_t: self.peak_t[l], first_t: self.first_t[l], last_t: self.last_t[l] }
         }
     }
@@ -1064,7 +1100,7 @@ mod v3 {
     /// Rays in flight in [`march_wave`]: four groups of 8 lanes, whose steps are interleaved
     /// stage by stage so that the groups' reads overlap (2% faster per lego frame than two
     /// groups; 16 rays were 13% faster than 8).
-    const LANES: usize = 32;
+    pub(super) const LANES: usize = 32;
 
     /// Steps of [`march_wave`] between looks at which lanes have finished. A finished lane
     /// idles until then: with 4, 8% of lane-steps on lego were idle, and 2 is 2% faster
@@ -1095,6 +1131,29 @@ mod v3 {
         y0: u32,
         bounds: Option<&RayBounds>,
         n: usize,
+        finish: F,
+    ) {
+        // SAFETY: the CPU has x86-64-v3 (this function's features).
+        unsafe { march_wave_in::<MULTI, false, F>(p, f, s, step, gap_t, y0, bounds, n, finish) }
+    }
+
+    /// [`march_wave`]'s body; `WIDE`: its steps in AVX-512 registers, two groups of 16 lanes
+    /// ([`super::v4::steps`]), else four groups of 8 in AVX2 registers.
+    ///
+    /// # Safety
+    /// The CPU has x86-64-v3, and AVX-512 (F, VL, BW, DQ) if `WIDE`; inlined only into
+    /// functions compiled for those features.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn march_wave_in<const MULTI: bool, const WIDE: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments)>(
+        p: &FastPrepared,
+        f: &RayFrame,
+        s: &RenderSettings,
+        step: f32,
+        gap_t: f32,
+        y0: u32,
+        bounds: Option<&RayBounds>,
+        n: usize,
         mut finish: F,
     ) {
         let density = &p.asset.density;
@@ -1113,7 +1172,8 @@ mod v3 {
         // without samples are finished here.
         let mut starts = Vec::with_capacity(n);
         for i0 in (0..n).step_by(8) {
-            let c = rays8(f, density, bounds, y0, i0, n, step);
+            // SAFETY: the CPU has x86-64-v3 (the caller's guarantee).
+            let c = unsafe { rays8(f, density, bounds, y0, i0, n, step) };
             for l in 0..8.min(n - i0) {
                 let (o, d) = (Vec3::new(c.o[0][l], c.o[1][l], c.o[2][l]), Vec3::new(c.d[0][l], c.d[1][l], c.d[2][l]));
                 if c.start >> l & 1 != 0 {
@@ -1151,6 +1211,11 @@ mod v3 {
             // Lanes that have finished (or are idle): frozen until the refill below.
             let mut finished = !active & (u32::MAX >> (32 - LANES));
             for _ in 0..STEPS {
+                if WIDE {
+                    // SAFETY: the CPU has AVX-512 (the caller's guarantee); as below.
+                    finished |= unsafe { super::v4::steps::<MULTI>(density, cells, &rule, &mut wave, &mut runs, &mut segments, finished, step) };
+                    continue;
+                }
                 // SAFETY: `locate8` on the live index (b³ entries, asserted); `sigma8` on its
                 // bricks (every entry is negative or a brick below `brick_count`, by
                 // `LiveCells::new`); lanes `at..at + 8` of the `LANES`-lane arrays.
@@ -1357,13 +1422,13 @@ mod v3 {
     }
 
     /// The march's constants for [`rule8`].
-    struct Rule<'a> {
-        s: &'a RenderSettings,
-        step: f32,
-        gap_t: f32,
-        margin: f32,
+    pub(super) struct Rule<'a> {
+        pub(super) s: &'a RenderSettings,
+        pub(super) step: f32,
+        pub(super) gap_t: f32,
+        pub(super) margin: f32,
         /// Fine cells per index cell.
-        r: f32,
+        pub(super) r: f32,
     }
 
     /// The rule on lanes `at..at + 8` for their samples `(is_live, σ, e)`, as `Scan::take`
@@ -1583,6 +1648,288 @@ mod v3 {
 
 }
 
+/// The wavefront march's steps in AVX-512 registers: the same lanes, state and rule as
+/// [`v3`], taken as two groups of 16 lanes with mask registers in place of blends (half
+/// the instructions per lane of the four groups of 8), and the density's f16 pairs split
+/// by a 32→16-bit narrowing. The same operations in the same order on every lane, so the
+/// same frames to the bit (tested against the AVX2 and per-ray marches).
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod v4 {
+    use super::v3::{LANES, Rule, Runs, Wave};
+    use super::*;
+    use std::arch::x86_64::*;
+
+    /// [`v3::march_wave`] with its steps in AVX-512 registers ([`steps`]).
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) fn march_wave<const MULTI: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments)>(
+        p: &FastPrepared,
+        f: &RayFrame,
+        s: &RenderSettings,
+        step: f32,
+        gap_t: f32,
+        y0: u32,
+        bounds: Option<&RayBounds>,
+        n: usize,
+        finish: F,
+    ) {
+        // SAFETY: the CPU has AVX-512 F/VL/BW/DQ and x86-64-v3 (this function's features).
+        unsafe { v3::march_wave_in::<MULTI, true, F>(p, f, s, step, gap_t, y0, bounds, n, finish) }
+    }
+
+    /// One step of every lane, two groups of 16 stage by stage (both groups' cell gathers,
+    /// then both groups' corner gathers and exps, then the rules); lanes set in `finished`
+    /// are frozen. Returns the lanes that stopped or have no sample left.
+    ///
+    /// # Safety
+    /// As [`v3::march_wave`]'s step: `cells` fits `density` (asserted by the caller), whose
+    /// live index entries are negative or bricks below `brick_count`; the CPU has AVX-512.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) unsafe fn steps<const MULTI: bool>(
+        density: &TextureCubes,
+        cells: &LiveCells,
+        rule: &Rule<'_>,
+        wave: &mut Wave,
+        runs: &mut Runs,
+        segments: &mut [Segments; LANES],
+        finished: u32,
+        step: f32,
+    ) -> u32 {
+        const { assert!(LANES == 32, "two groups of 16 lanes") };
+        let frozen = [finished as u16, (finished >> 16) as u16];
+        // SAFETY: as the caller guarantees; lanes `at..at + 16` of `LANES`-lane arrays.
+        unsafe {
+            let at = [locate16(density, &cells.index, wave, 0, step), locate16(density, &cells.index, wave, 16, step)];
+            let sampled = [sigma16(density, cells, &at[0], frozen[0], step), sigma16(density, cells, &at[1], frozen[1], step)];
+            rule16::<MULTI>(rule, wave, runs, segments, 0, &at[0], sampled[0], frozen[0]) | rule16::<MULTI>(rule, wave, runs, segments, 16, &at[1], sampled[1], frozen[1])
+        }
+    }
+
+    /// [`v3`]'s `Located` for 16 lanes.
+    struct Located {
+        k: __m512i,
+        t0: __m512,
+        t: __m512,
+        g: [__m512; 3],
+        c: [__m512; 3],
+        brick: __m512i,
+    }
+
+    /// The next samples of lanes `at..at + 16` (as `v3::locate8`).
+    ///
+    /// # Safety
+    /// `live` has `grid³` entries; `at + 16 ≤ LANES`.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn locate16(density: &TextureCubes, live: &[i32], wave: &Wave, at: usize, step: f32) -> Located {
+        // SAFETY: 16-lane loads at `at ≤ LANES − 16`; the gather as `cells16`.
+        unsafe {
+            let ld = |a: &[f32; LANES]| _mm512_loadu_ps(a.as_ptr().add(at));
+            let k = _mm512_loadu_si512(wave.k.as_ptr().add(at).cast());
+            let t0 = ld(&wave.t0);
+            let t = _mm512_add_ps(t0, _mm512_mul_ps(_mm512_add_ps(_mm512_cvtepi32_ps(k), _mm512_set1_ps(0.5)), _mm512_set1_ps(step)));
+            // g = (o + t·d − min) / size · res, as `TextureCubes::to_fine`.
+            let (min, size, res) = (density.bounds.min, density.bounds.size(), density.fine_res() as f32);
+            let fine = |a: usize| {
+                let p = _mm512_add_ps(ld(&wave.o[a]), _mm512_mul_ps(t, ld(&wave.d[a])));
+                _mm512_mul_ps(_mm512_div_ps(_mm512_sub_ps(p, _mm512_set1_ps(min[a])), _mm512_set1_ps(size[a])), _mm512_set1_ps(res))
+            };
+            let g = [fine(0), fine(1), fine(2)];
+            // cell = clamp(trunc(g / r), 0, b − 1) (g · 1/r is g / r to the bit for r a power
+            // of two).
+            let (b, r) = (density.grid as i32, density.brick as f32);
+            let over_r = |g: __m512| if density.brick.is_power_of_two() { _mm512_mul_ps(g, _mm512_set1_ps(1.0 / r)) } else { _mm512_div_ps(g, _mm512_set1_ps(r)) };
+            let cell = |g: __m512| _mm512_min_ps(_mm512_max_ps(_mm512_cvtepi32_ps(_mm512_cvttps_epi32(over_r(g))), _mm512_setzero_ps()), _mm512_set1_ps((b - 1) as f32));
+            let c = [cell(g[0]), cell(g[1]), cell(g[2])];
+            let bi = _mm512_set1_epi32(b);
+            let cell_at = _mm512_add_epi32(_mm512_cvttps_epi32(c[0]), _mm512_mullo_epi32(bi, _mm512_add_epi32(_mm512_cvttps_epi32(c[1]), _mm512_mullo_epi32(bi, _mm512_cvttps_epi32(c[2])))));
+            // Each coordinate is clamped to 0..b, so `cell_at < b³ = live.len()`.
+            let brick = _mm512_i32gather_epi32::<4>(cell_at, live.as_ptr());
+            Located { k, t0, t, g, c, brick }
+        }
+    }
+
+    /// σ and e = e^(−σδ) of located samples (σ = 0, e = 1 in dead cells and frozen lanes),
+    /// and which lanes read a live brick (as `v3::sigma8`).
+    ///
+    /// # Safety
+    /// Every non-negative lane of `at.brick` is a brick of `density`.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn sigma16(density: &TextureCubes, cells: &LiveCells, at: &Located, frozen: __mmask16, step: f32) -> (__mmask16, __m512, __m512) {
+        let is_live = !frozen & _mm512_cmpgt_epi32_mask(at.brick, _mm512_set1_epi32(-1));
+        // SAFETY: a dead cell (negative) is read as brick 0 and masked out below.
+        let acc = unsafe { density16(density, cells, at.g, at.c, _mm512_max_epi32(at.brick, _mm512_setzero_si512())) };
+        let sigma = _mm512_maskz_mov_ps(is_live, acc);
+        let ex = _mm512_mask_blend_ps(is_live, _mm512_set1_ps(1.0), exp_neg16(_mm512_mul_ps(sigma, _mm512_set1_ps(step))));
+        (is_live, sigma, ex)
+    }
+
+    /// σ at fine-grid points `g` of cells `c` from their bricks: `v3::density8` on 16 lanes
+    /// (the same corner order and operations, so the same bits).
+    ///
+    /// # Safety
+    /// Every lane of `brick` is a brick of `density` (`values` below 2³¹ entries).
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn density16(density: &TextureCubes, cells: &LiveCells, g: [__m512; 3], c: [__m512; 3], brick: __m512i) -> __m512 {
+        let r = density.brick as f32;
+        let e = density.brick as i32 + 1;
+        let zero = _mm512_setzero_ps();
+        // u = clamp(g − cell·r, 0, r), base = min(trunc u, r − 1), f = u − base.
+        let split = |a: usize| {
+            let u = _mm512_min_ps(_mm512_max_ps(_mm512_sub_ps(g[a], _mm512_mul_ps(c[a], _mm512_set1_ps(r))), zero), _mm512_set1_ps(r));
+            let base = _mm512_min_ps(_mm512_cvtepi32_ps(_mm512_cvttps_epi32(u)), _mm512_set1_ps(r - 1.0));
+            (_mm512_sub_ps(u, base), _mm512_cvttps_epi32(base))
+        };
+        let (fx, bx) = split(0);
+        let (fy, by) = split(1);
+        let (fz, bz) = split(2);
+        let ei = _mm512_set1_epi32(e);
+        let start = _mm512_mullo_epi32(brick, _mm512_set1_epi32(density.brick_corners() as i32));
+        let idx0 = _mm512_add_epi32(start, _mm512_add_epi32(bx, _mm512_mullo_epi32(ei, _mm512_add_epi32(by, _mm512_mullo_epi32(ei, bz)))));
+        let one = _mm512_set1_ps(1.0);
+        let (hx, hy, hz) = (_mm512_sub_ps(one, fx), _mm512_sub_ps(one, fy), _mm512_sub_ps(one, fz));
+        let mut acc = zero;
+        // SAFETY (the gathers): `idx0 + corner offset` lies in the brick's corners (each
+        // coordinate of `base + corner` in 0..=r); in the paired reads x ≤ r − 1, so both
+        // u16s lie in the brick's row.
+        if let Some(h) = &cells.values_f16 {
+            for pair in 0..4i32 {
+                let (dy, dz) = (pair & 1, pair >> 1);
+                let bits = unsafe { _mm512_i32gather_epi32::<2>(_mm512_add_epi32(idx0, _mm512_set1_epi32(e * (dy + e * dz))), h.as_ptr().cast()) };
+                // The low and high f16 of each 32-bit lane, narrowed to 16 bits and widened to f32.
+                let v0 = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(bits));
+                let v1 = _mm512_cvtph_ps(_mm512_cvtepi32_epi16(_mm512_srli_epi32::<16>(bits)));
+                let wyz = |w: __m512| _mm512_mul_ps(_mm512_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                acc = _mm512_add_ps(acc, _mm512_mul_ps(wyz(hx), v0));
+                acc = _mm512_add_ps(acc, _mm512_mul_ps(wyz(fx), v1));
+            }
+        } else {
+            for corner in 0..8i32 {
+                let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
+                let w = _mm512_mul_ps(_mm512_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                let v = unsafe { _mm512_i32gather_ps::<4>(_mm512_add_epi32(idx0, _mm512_set1_epi32(dx + e * (dy + e * dz))), density.values.as_ptr()) };
+                acc = _mm512_add_ps(acc, _mm512_mul_ps(w, v));
+            }
+        }
+        acc
+    }
+
+    /// The rule on lanes `at..at + 16` (as `v3::rule8`, with masks for blends). Returns the
+    /// lanes (bits `at..at + 16`) that stopped or have no sample left.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn rule16<const MULTI: bool>(rule: &Rule<'_>, wave: &mut Wave, runs: &mut Runs, segments: &mut [Segments; LANES], at: usize, l: &Located, (is_live, sigma, ex): (__mmask16, __m512, __m512), frozen: __mmask16) -> u32 {
+        let s = rule.s;
+        let (one, zero) = (_mm512_set1_ps(1.0), _mm512_setzero_ps());
+        // SAFETY: 16-lane loads and stores at `at ≤ LANES − 16` of `LANES`-lane arrays.
+        unsafe {
+            let ld = |a: &[f32; LANES]| _mm512_loadu_ps(a.as_ptr().add(at));
+            let ldi = |a: &[i32; LANES]| _mm512_loadu_si512(a.as_ptr().add(at).cast());
+            let st = |a: &mut [f32; LANES], v: __m512| _mm512_storeu_ps(a.as_mut_ptr().add(at), v);
+            let nonzero = _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(sigma, zero);
+            let alpha = _mm512_sub_ps(one, ex);
+            let transmittance = ld(&wave.transmittance);
+            let w = _mm512_mul_ps(transmittance, alpha);
+            let w_max = ld(&wave.w_max);
+            let new_max = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(w, w_max);
+            let w_max = _mm512_mask_blend_ps(new_max, w_max, w);
+            st(&mut wave.w_max, w_max);
+            let t_hit = _mm512_mask_blend_ps(new_max, ld(&wave.t_hit), l.t);
+            st(&mut wave.t_hit, t_hit);
+            let transmittance = _mm512_mul_ps(transmittance, _mm512_sub_ps(one, alpha));
+            st(&mut wave.transmittance, transmittance);
+            let stop = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(transmittance, _mm512_mul_ps(_mm512_set1_ps(s.stop_ratio), w_max))
+                | _mm512_cmp_ps_mask::<_CMP_LT_OQ>(transmittance, _mm512_set1_ps(s.early_stop));
+            let samples = _mm512_loadu_si512(wave.samples.as_ptr().add(at).cast());
+            _mm512_storeu_si512(wave.samples.as_mut_ptr().add(at).cast(), _mm512_mask_add_epi32(samples, nonzero, samples, _mm512_set1_epi32(1)));
+            if MULTI {
+                // `Segments::sample` on each lane with w > 0 (not NaN), as `v3::rule8`.
+                let t = l.t;
+                let valid = !frozen & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(w, zero);
+                let open = _mm512_test_epi32_mask(ldi(&runs.open), ldi(&runs.open));
+                let past_gap = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(_mm512_sub_ps(t, ld(&runs.peak_t)), _mm512_set1_ps(rule.gap_t));
+                let mut closing = (valid & open & past_gap) as u32;
+                while closing != 0 {
+                    let lane = at + closing.trailing_zeros() as usize;
+                    closing &= closing - 1;
+                    segments[lane].close_run(runs.segment(lane), runs.primary[lane] != 0);
+                    (runs.open[lane], runs.primary[lane]) = (0, 0);
+                }
+                let open = _mm512_test_epi32_mask(ldi(&runs.open), ldi(&runs.open));
+                let start = valid & !open;
+                let weight = _mm512_mask_blend_ps(start, ld(&runs.weight), zero);
+                let peak_w = _mm512_mask_blend_ps(start, ld(&runs.peak_w), zero);
+                let peak_t = _mm512_mask_blend_ps(start, ld(&runs.peak_t), t);
+                let first_t = _mm512_mask_blend_ps(start, ld(&runs.first_t), t);
+                st(&mut runs.first_t, first_t);
+                _mm512_storeu_si512(runs.open.as_mut_ptr().add(at).cast(), _mm512_movm_epi32(open | valid));
+                st(&mut runs.weight, _mm512_mask_blend_ps(valid, weight, _mm512_add_ps(weight, w)));
+                let last_t = _mm512_mask_blend_ps(valid, ld(&runs.last_t), t);
+                st(&mut runs.last_t, last_t);
+                let heavier = valid & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(w, peak_w);
+                st(&mut runs.peak_w, _mm512_mask_blend_ps(heavier, peak_w, w));
+                st(&mut runs.peak_t, _mm512_mask_blend_ps(heavier, peak_t, t));
+                let primary = _mm512_test_epi32_mask(ldi(&runs.primary), ldi(&runs.primary)) | (valid & new_max);
+                _mm512_storeu_si512(runs.primary.as_mut_ptr().add(at).cast(), _mm512_movm_epi32(primary));
+            }
+            let k1 = _mm512_add_epi32(l.k, _mm512_set1_epi32(1));
+            // The dead block's side m = 2^L cells (1 in live cells), and 1/m.
+            let level = _mm512_max_epi32(_mm512_sub_epi32(_mm512_set1_epi32(-1), l.brick), _mm512_setzero_si512());
+            let m = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(level, _mm512_set1_epi32(127))));
+            let inv_m = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_sub_epi32(_mm512_set1_epi32(127), level)));
+            const FLOOR: i32 = _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC;
+            const CEIL: i32 = _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC;
+            let exit = |a: usize| {
+                let t_per = ld(&wave.t_per_fine[a]);
+                let up = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(t_per, zero);
+                let block = _mm512_mul_ps(_mm512_roundscale_ps::<FLOOR>(_mm512_mul_ps(l.c[a], inv_m)), m);
+                let bound = _mm512_mul_ps(_mm512_add_ps(block, _mm512_maskz_mov_ps(up, m)), _mm512_set1_ps(rule.r));
+                // ≥ 0, or NaN for a parallel ray (0·∞), which `min_ps` drops for its second operand.
+                _mm512_mul_ps(_mm512_sub_ps(bound, l.g[a]), t_per)
+            };
+            let dt = _mm512_min_ps(exit(2), _mm512_min_ps(exit(1), exit(0)));
+            let ks = _mm512_roundscale_ps::<CEIL>(_mm512_sub_ps(
+                _mm512_mul_ps(_mm512_sub_ps(_mm512_sub_ps(_mm512_add_ps(l.t, dt), _mm512_set1_ps(rule.margin)), l.t0), _mm512_set1_ps(1.0 / rule.step)),
+                _mm512_set1_ps(0.5),
+            ));
+            // min(k_end, ks) keeps a NaN (its second operand); max(·, k + 1) then takes k + 1.
+            let k_end = ldi(&wave.k_end);
+            let ks = _mm512_max_ps(_mm512_min_ps(_mm512_cvtepi32_ps(k_end), ks), _mm512_cvtepi32_ps(k1));
+            let k_next = _mm512_mask_blend_epi32(frozen, _mm512_mask_blend_epi32(is_live, _mm512_cvttps_epi32(ks), k1), l.k);
+            _mm512_storeu_si512(wave.k.as_mut_ptr().add(at).cast(), k_next);
+            let past_end = !_mm512_cmpgt_epi32_mask(k_end, k_next);
+            (((stop & nonzero) | past_end) as u32) << at
+        }
+    }
+
+    /// [`exp_neg`] on 16 lanes, the same operations in the same order as `v3::exp_neg8`.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn exp_neg16(x: __m512) -> __m512 {
+        let x = _mm512_sub_ps(_mm512_setzero_ps(), x);
+        let underflow = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(x, _mm512_set1_ps(-87.0));
+        let nan = _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(x, x);
+        let xc = _mm512_min_ps(x, _mm512_set1_ps(88.0));
+        let magic = _mm512_set1_ps(12_582_912.0);
+        let n = _mm512_sub_ps(_mm512_add_ps(_mm512_mul_ps(xc, _mm512_set1_ps(std::f32::consts::LOG2_E)), magic), magic);
+        let r = _mm512_sub_ps(_mm512_sub_ps(xc, _mm512_mul_ps(n, _mm512_set1_ps(0.693_359_4))), _mm512_mul_ps(n, _mm512_set1_ps(-2.121_944_4e-4)));
+        let mut p = _mm512_set1_ps(1.987_569_2e-4);
+        for c in [1.398_199_9e-3, 8.333_452e-3, 4.166_579_6e-2, 1.666_666_5e-1, 0.5] {
+            p = _mm512_add_ps(_mm512_mul_ps(p, r), _mm512_set1_ps(c));
+        }
+        let y = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(_mm512_mul_ps(p, r), r), r), _mm512_set1_ps(1.0));
+        let scale = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(_mm512_cvtps_epi32(n), _mm512_set1_epi32(127))));
+        _mm512_mask_blend_ps(nan, _mm512_maskz_mov_ps(!underflow, _mm512_mul_ps(y, scale)), x)
+    }
+}
+
 /// `e^(−x)` for the march's `x = σδ`: Cephes' single-precision range reduction and
 /// polynomial, inline (the libm call and the register spills around it cost more than the
 /// sample itself). Within 2 ulp of libm's `expf` over the range the march sees (tested); 0
@@ -1648,7 +1995,7 @@ mod tests {
         in_memory.density.values.iter_mut().for_each(|v| *v *= 1.0 + 1e-5);
         for (asset, f16) in [(stored, true), (in_memory, false)] {
             let asset = Arc::new(asset);
-            let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: PshBricks::new(&asset.psh), diffuse: None, asset: asset.clone(), wavefront: true };
+            let prepared = FastPrepared { net: asset.mlp.kernel(), live: LiveCells::new(&asset.density), hash: PshBricks::new(&asset.psh), diffuse: None, asset: asset.clone(), march: March::Avx2 };
             // Both kernels' paths are exercised.
             assert_eq!(prepared.live.values_f16.is_some(), f16);
             same_sigmas(&prepared);
@@ -1694,7 +2041,7 @@ mod tests {
             hash: PshBricks::new(&asset.psh),
             diffuse: DiffuseBytes::new(&asset.diffuse),
             asset: asset.clone(),
-            wavefront: true,
+            march: March::Avx2,
         };
         assert!(prepared.diffuse.is_some() && asset.psh.features.is_multiple_of(8));
         let nf = asset.psh.features as usize;
@@ -1747,6 +2094,9 @@ mod tests {
             eprintln!("no AVX2 on this CPU: only the per-ray march exists");
             return;
         }
+        if !wide_lanes() {
+            eprintln!("no AVX-512 on this CPU: the AVX-512 march is not compared");
+        }
         use crate::{Intrinsics, View, ViewRequest};
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/assets/lego.nolf");
         let lego = Asset::load(&path).unwrap();
@@ -1758,18 +2108,20 @@ mod tests {
         let views = [orbit(160, 120, 35.0, 25.0, 4.0), orbit(97, 61, 200.0, -10.0, 3.0), orbit(64, 64, 90.0, 0.0, 6.0), inside];
         for asset in [lego, trio, translucent] {
             let asset = Arc::new(asset);
-            let prepare = |wavefront| FastPrepared {
+            let prepare = |march| FastPrepared {
                 net: asset.mlp.kernel(),
                 live: LiveCells::new(&asset.density),
                 hash: PshBricks::new(&asset.psh),
                 diffuse: DiffuseBytes::new(&asset.diffuse),
                 asset: asset.clone(),
-                wavefront,
+                march,
             };
-            let (wave, ray) = (prepare(true), prepare(false));
+            let (wave, ray) = (prepare(March::Avx2), prepare(March::Ray));
+            // The AVX-512 march where the CPU has it.
+            let wide = wide_lanes().then(|| prepare(March::Avx512));
             // Footprints of merged blocks bound the rays more loosely: the extra samples lie
             // in dead cells and change nothing.
-            let merged = FastPrepared { live: LiveCells::new(&asset.density).with_blocks_at_most(asset.density.brick_count() / 20), ..prepare(true) };
+            let merged = FastPrepared { live: LiveCells::new(&asset.density).with_blocks_at_most(asset.density.brick_count() / 20), ..prepare(March::Avx2) };
             assert!(merged.live.block >= 2, "{} blocks of {}", merged.live.blocks.len(), merged.live.block);
             for settings in [
                 RenderSettings { hit_tau: Some(1.0), ..Default::default() },
@@ -1781,7 +2133,12 @@ mod tests {
                 let b = ray.render(&views, &settings).unwrap();
                 let c = merged.render(&views, &settings).unwrap();
                 assert_eq!((a.stats.hits, a.stats.queries), (c.stats.hits, c.stats.queries), "{settings:?}: merged footprints");
-                for (fa, fb) in a.frames.iter().zip(&b.frames).chain(a.frames.iter().zip(&c.frames)) {
+                let d = wide.as_ref().map(|w| w.render(&views, &settings).unwrap());
+                if let Some(d) = &d {
+                    assert_eq!((a.stats.hits, a.stats.samples, a.stats.queries), (d.stats.hits, d.stats.samples, d.stats.queries), "{settings:?}: AVX-512 march");
+                }
+                let wide_frames = d.iter().flat_map(|d| a.frames.iter().zip(&d.frames));
+                for (fa, fb) in a.frames.iter().zip(&b.frames).chain(a.frames.iter().zip(&c.frames)).chain(wide_frames) {
                     assert!(fa.rgba == fb.rgba, "{settings:?}: the colours differ");
                     assert!(fa.depth.iter().zip(&fb.depth).all(|(x, y)| x.to_bits() == y.to_bits()), "{settings:?}: the depths differ");
                 }
