@@ -671,12 +671,12 @@ impl FastPrepared {
                 let gap_t = rule.gap_steps * step;
                 // The lane's segments go to `choose`, fresh ones stay for its next ray.
                 let fresh = Segments::new(gap_t);
-                let mut multi = |i, o, d, m, segments: &mut Segments| take(i, o, d, std::mem::replace(segments, fresh.clone()).choose(m, rule));
+                let multi = |i, o, d, m, segments: &mut Segments| take(i, o, d, std::mem::replace(segments, fresh.clone()).choose(m, rule));
                 match (self.march == March::Avx512, rule.one_hit()) {
                     (true, true) => v4::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m))),
-                    (true, false) => v4::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, &mut multi),
+                    (true, false) => v4::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, multi),
                     (false, true) => v3::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _| take(i, o, d, MultiHit::one(m))),
-                    (false, false) => v3::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, &mut multi),
+                    (false, false) => v3::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, multi),
                 }
             }
             marched = true;
