@@ -91,6 +91,15 @@ enum March {
     Avx512,
 }
 
+/// The march [`FastCpuBackend`] uses on this CPU (after `NEPHELE_MARCH` and `NEPHELE_SIMD`), in words.
+pub fn march_name() -> &'static str {
+    match March::detect() {
+        March::Ray => "one ray at a time",
+        March::Avx2 => "32 rays, four groups of 8 AVX2 lanes",
+        March::Avx512 => "32 rays, two groups of 16 AVX-512 lanes",
+    }
+}
+
 /// Whether the CPU has what [`v4`] is compiled for.
 fn wide_lanes() -> bool {
     #[cfg(target_arch = "x86_64")]

@@ -206,7 +206,11 @@ pub fn run(what: BenchCommand) -> Result<()> {
             }
             let peak = nephele_renderer::mlp::peak_fma_gflops();
             match peak {
-                Some((p, threads, level)) => println!("asset: {asset}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}", format_table_with_peak(&rows, Some(p))),
+                Some((p, threads, level)) => println!(
+                    "asset: {asset}\nfast CPU march: {}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}",
+                    nephele_renderer::fast::march_name(),
+                    format_table_with_peak(&rows, Some(p))
+                ),
                 None => println!("asset: {asset}\n\n{}", format_table(&rows)),
             }
             if !batches.is_empty() {
