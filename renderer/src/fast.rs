@@ -63,11 +63,23 @@ impl Backend for FastCpuBackend {
         "cpu".into()
     }
     fn prepare(&self, asset: Arc<Asset>) -> Result<Box<dyn PreparedAsset>, RenderError> {
+        self.prepare_with_march(asset, March::detect())
+    }
+}
+
+impl FastCpuBackend {
+    /// [`Backend::prepare`] with the given march instead of the widest this CPU has (for
+    /// side-by-side measurements, `nephele bench render --marches`); an error if the CPU
+    /// lacks what it needs.
+    pub fn prepare_with_march(&self, asset: Arc<Asset>, march: March) -> Result<Box<dyn PreparedAsset>, RenderError> {
+        if !march.available() {
+            return Err(RenderError::BadSettings(format!("this CPU cannot run the {} march", march.name())));
+        }
         let net = asset.mlp.kernel();
         let live = LiveCells::new(&asset.density);
         let hash = PshBricks::new(&asset.psh);
         let diffuse = DiffuseBytes::new(&asset.diffuse);
-        Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse, march: March::detect() }))
+        Ok(Box::new(FastPrepared { asset, net, live, hash, diffuse, march }))
     }
 }
 
@@ -82,7 +94,7 @@ struct FastPrepared {
 
 /// How a band's rays are marched (all give the same frames to the bit; tested).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum March {
+pub enum March {
     /// One ray at a time along its lattice ([`FastPrepared::march`]): CPUs without AVX2.
     Ray,
     /// 32 rays at a time, one per lane, in four groups of 8 AVX2 lanes ([`v3::march_wave`]).
@@ -91,14 +103,6 @@ enum March {
     Avx512,
 }
 
-/// The march [`FastCpuBackend`] uses on this CPU (after `NEPHELE_MARCH` and `NEPHELE_SIMD`), in words.
-pub fn march_name() -> &'static str {
-    match March::detect() {
-        March::Ray => "one ray at a time",
-        March::Avx2 => "32 rays, four groups of 8 AVX2 lanes",
-        March::Avx512 => "32 rays, two groups of 16 AVX-512 lanes",
-    }
-}
 
 /// Whether the CPU has what [`v4`] is compiled for.
 fn wide_lanes() -> bool {
@@ -114,15 +118,40 @@ fn wide_lanes() -> bool {
 impl March {
     /// The widest march this CPU has; `NEPHELE_MARCH=ray|avx2` caps it (for side-by-side
     /// measurements), as does `NEPHELE_SIMD`.
-    fn detect() -> Self {
-        use crate::mlp::simd::{Level, level};
+    pub fn detect() -> Self {
         let cap = std::env::var("NEPHELE_MARCH").unwrap_or_default();
-        let avx512 = level() == Level::Avx512 && wide_lanes();
-        match level() {
-            _ if cap == "ray" => Self::Ray,
-            Level::Portable => Self::Ray,
-            _ if avx512 && cap != "avx2" => Self::Avx512,
+        match () {
+            _ if cap == "ray" || !Self::Avx2.available() => Self::Ray,
+            _ if cap != "avx2" && Self::Avx512.available() => Self::Avx512,
             _ => Self::Avx2,
+        }
+    }
+
+    /// Whether this CPU runs it (within the cap of `NEPHELE_SIMD`).
+    pub fn available(self) -> bool {
+        use crate::mlp::simd::{Level, level};
+        match self {
+            Self::Ray => true,
+            Self::Avx2 => level() != Level::Portable,
+            Self::Avx512 => level() == Level::Avx512 && wide_lanes(),
+        }
+    }
+
+    /// Its short name, as `NEPHELE_MARCH` and `bench render --marches` spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Ray => "ray",
+            Self::Avx2 => "avx2",
+            Self::Avx512 => "avx512",
+        }
+    }
+
+    /// What it does, in words.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Self::Ray => "one ray at a time",
+            Self::Avx2 => "32 rays, four groups of 8 AVX2 lanes",
+            Self::Avx512 => "32 rays, two groups of 16 AVX-512 lanes",
         }
     }
 }
@@ -675,7 +704,9 @@ impl FastPrepared {
         if V && self.march != March::Ray {
             #[allow(unsafe_code)]
             // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`), and
-            // `march` is `Avx512` only where it has AVX-512 F/VL/BW/DQ too (`March::detect`).
+            // `march` is `Avx512` only where it has AVX-512 F/VL/BW/DQ too
+            // (`FastCpuBackend::prepare_with_march` checks `March::available`; the tests
+            // check `wide_lanes`).
             unsafe {
                 let gap_t = rule.gap_steps * step;
                 // The lane's segments go to `choose`, fresh ones stay for its next ray.

@@ -91,6 +91,19 @@ fn generate_info_and_bench_print_tables() {
     let knob_row = text.lines().find(|l| l.starts_with("| cpu | early stop 0.5 | 64×48 |")).unwrap_or_else(|| panic!("{text}"));
     let psnr: f64 = knob_row.trim_end_matches(" |").rsplit("| ").next().unwrap().parse().unwrap_or_else(|e| panic!("{knob_row}: {e}"));
     assert!(psnr.is_finite() && psnr > 0.0 && psnr < 60.0, "T < 0.5 stops early enough to change the frame, and the column says so: {knob_row}");
+    // The CPU backend's marches side by side: every one renders the first one's frame.
+    #[cfg(target_arch = "x86_64")]
+    let marches = if std::arch::is_x86_feature_detected!("avx512f") { "avx512,avx2,ray" } else { "avx2,ray" };
+    #[cfg(not(target_arch = "x86_64"))]
+    let marches = "ray";
+    let o = nephele(&["bench", "render", "--asset", "builtin:trio-small", "--sizes", "64x48", "--backends", "cpu", "--runs", "1", "--marches", marches]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("PSNR vs first march dB"), "{text}");
+    for (i, march) in marches.split(',').enumerate() {
+        let row = text.lines().find(|l| l.starts_with(&format!("| cpu, {march} march | 64×48 |"))).unwrap_or_else(|| panic!("no {march} row: {text}"));
+        assert_eq!(row.ends_with("| ∞ (same frame) |"), i > 0, "{row}");
+    }
 }
 
 #[test]
@@ -121,6 +134,8 @@ fn bad_input_is_a_clear_error() {
         (vec!["render", "builtin:trio-small", "--early-stop", "1"], "--early-stop in [0, 1)"),
         (vec!["serve", "--early-stop", "NaN"], "--early-stop in [0, 1)"),
         (vec!["replay", "--trace", "/nonexistent.json"], "nonexistent.json"),
+        (vec!["bench", "render", "--backends", "cpu-ref", "--marches", "ray"], "add cpu to --backends"),
+        (vec!["bench", "render", "--backends", "cpu", "--marches", "simd"], "invalid value 'simd'"),
     ] {
         let o = nephele(&args);
         assert!(!o.status.success(), "{args:?} should fail");

@@ -8,7 +8,7 @@ use std::{fmt::Write, path::PathBuf, sync::Arc};
 
 use anyhow::Result;
 use glam::DVec3;
-use nephele_renderer::{Backend, Intrinsics, RenderSettings, View, ViewRequest};
+use nephele_renderer::{Backend, Intrinsics, PreparedAsset, RenderSettings, View, ViewRequest};
 use nephele_signaling::Mode;
 
 use super::replay::load_trace;
@@ -120,6 +120,11 @@ pub enum BenchCommand {
         /// print ms per view of each: what batching a render task saves.
         #[arg(long, default_value_t = 0)]
         batch: usize,
+        /// The `cpu` backend with each of these ray marches, frames alternating (all give the
+        /// same frames; the PSNR column shows it): avx512, avx2, ray. Default: the widest
+        /// this CPU has.
+        #[arg(long, value_delimiter = ',')]
+        marches: Vec<MarchChoice>,
         #[command(flatten)]
         knobs: super::RenderKnobs,
     },
@@ -187,7 +192,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
             }
             Ok(())
         }
-        BenchCommand::Render { asset, sizes, backends, runs, distance, batch, knobs } => {
+        BenchCommand::Render { asset, sizes, backends, runs, distance, batch, marches, knobs } => {
             // With knobs set, the default rule is timed beside them (frames alternating), and
             // their frame's PSNR against its frame is printed.
             let settings = knobs.settings()?;
@@ -196,10 +201,19 @@ pub fn run(what: BenchCommand) -> Result<()> {
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
             let mut rows = Vec::new();
             let mut batches = Vec::new();
+            if !marches.is_empty() && !backends.contains(&BackendChoice::Cpu) {
+                anyhow::bail!("--marches compares the `cpu` backend's marches: add cpu to --backends");
+            }
             for b in backends {
                 let backend = make_backend(b)?;
                 eprintln!("benchmarking {} ...", backend.name());
-                rows.extend(bench_render(backend.as_ref(), a.clone(), &sizes, runs, distance, &rules)?);
+                let variants = if b == BackendChoice::Cpu && !marches.is_empty() {
+                    let fast = nephele_renderer::FastCpuBackend;
+                    marches.iter().map(|m| Ok((format!("cpu, {} march", m.march().name()), fast.prepare_with_march(a.clone(), m.march())?))).collect::<Result<Vec<_>>>()?
+                } else {
+                    vec![(backend.name(), backend.prepare(a.clone())?)]
+                };
+                rows.extend(bench_render(&variants, &sizes, runs, distance, &rules)?);
                 if batch > 1 {
                     batches.extend(bench_batch(backend.as_ref(), a.clone(), &sizes, runs, distance, batch, &settings)?);
                 }
@@ -207,8 +221,8 @@ pub fn run(what: BenchCommand) -> Result<()> {
             let peak = nephele_renderer::mlp::peak_fma_gflops();
             match peak {
                 Some((p, threads, level)) => println!(
-                    "asset: {asset}\nfast CPU march: {}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}",
-                    nephele_renderer::fast::march_name(),
+                    "asset: {asset}\nfast CPU march (default): {}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}",
+                    nephele_renderer::fast::March::detect().describe(),
                     format_table_with_peak(&rows, Some(p))
                 ),
                 None => println!("asset: {asset}\n\n{}", format_table(&rows)),
@@ -306,34 +320,50 @@ pub struct RenderBenchRow {
     pub psnr_vs_first: Option<f64>,
 }
 
-/// Median of `runs` renders of an orbit view at each size (after one warm-up), for each of
-/// `rules`, their frames alternating so that every rule sees the same machine. Rows after the
-/// first rule's carry their PSNR against its frame (the trade of a speed-for-accuracy knob).
-pub fn bench_render(
-    backend: &dyn Backend,
-    asset: std::sync::Arc<nephele_renderer::Asset>,
-    sizes: &[(u32, u32)],
-    runs: usize,
-    distance: f64,
-    rules: &[RenderSettings],
-) -> Result<Vec<RenderBenchRow>> {
-    let prepared = backend.prepare(asset)?;
+/// A march of the `cpu` backend ([`nephele_renderer::fast::March`]), for `bench render --marches`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum MarchChoice {
+    /// Two groups of 16 AVX-512 lanes.
+    Avx512,
+    /// Four groups of 8 AVX2 lanes.
+    Avx2,
+    /// One ray at a time.
+    Ray,
+}
+
+impl MarchChoice {
+    fn march(self) -> nephele_renderer::fast::March {
+        use nephele_renderer::fast::March;
+        match self {
+            Self::Avx512 => March::Avx512,
+            Self::Avx2 => March::Avx2,
+            Self::Ray => March::Ray,
+        }
+    }
+}
+
+/// Median of `runs` renders of an orbit view at each size (after one warm-up), for each
+/// prepared variant (named, e.g. a backend or one of its marches) under each of `rules`, their
+/// frames alternating so that every variant and rule sees the same machine. Rows after the
+/// first carry their PSNR against its frame (the trade of a speed-for-accuracy knob).
+pub fn bench_render(variants: &[(String, Box<dyn PreparedAsset>)], sizes: &[(u32, u32)], runs: usize, distance: f64, rules: &[RenderSettings]) -> Result<Vec<RenderBenchRow>> {
+    let combos: Vec<(&String, &dyn PreparedAsset, &RenderSettings)> = variants.iter().flat_map(|(name, p)| rules.iter().map(move |r| (name, p.as_ref(), r))).collect();
     let mut rows = Vec::new();
     for &(w, h) in sizes {
         let view = View::orbit(DVec3::ZERO, distance, 35.0, 25.0, Intrinsics::from_fov_x(w, h, 0.69));
         let req = [ViewRequest::new(view)];
-        let frames: Vec<Vec<u8>> = rules.iter().map(|s| Ok(prepared.render(&req, s)?.frames.remove(0).rgba)).collect::<Result<_>>()?;
-        let mut samples = vec![Vec::new(); rules.len()];
+        let frames: Vec<Vec<u8>> = combos.iter().map(|(_, p, s)| Ok(p.render(&req, s)?.frames.remove(0).rgba)).collect::<Result<_>>()?;
+        let mut samples = vec![Vec::new(); combos.len()];
         for _ in 0..runs.max(1) {
-            for (rule, out) in rules.iter().zip(&mut samples) {
+            for ((_, prepared, rule), out) in combos.iter().zip(&mut samples) {
                 out.push(prepared.render(&req, rule)?.stats);
             }
         }
-        for (i, (rule, mut samples)) in rules.iter().zip(samples).enumerate() {
+        for (i, ((name, prepared, rule), mut samples)) in combos.iter().zip(samples).enumerate() {
             samples.sort_by(|a, b| a.total_ms.total_cmp(&b.total_ms));
             let s = samples[samples.len() / 2];
             rows.push(RenderBenchRow {
-                backend: backend.name(),
+                backend: name.to_string(),
                 rule: describe_rule(rule),
                 width: w,
                 height: h,
@@ -427,10 +457,12 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
     let mut out = String::new();
     // The rule and PSNR columns only when some row has knobs set.
     let rules = rows.iter().any(|r| r.rule != "default");
+    // The PSNR column also when several marches (or backends' variants) are compared.
+    let psnr = rules || rows.iter().any(|r| r.psnr_vs_first.is_some());
     let _ = write!(out, "| backend |{} size | ray-march ms | network ms | total ms | Mrays/s | hit fraction | samples/ray | queries/hit |", if rules { " rule |" } else { "" });
     let _ = write!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor |" } else { "" });
-    let _ = writeln!(out, "{}", if rules { " PSNR vs default rule dB |" } else { "" });
-    let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" }, if rules { "---:|" } else { "" });
+    let _ = writeln!(out, "{}", if rules { " PSNR vs default rule dB |" } else if psnr { " PSNR vs first march dB |" } else { "" });
+    let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" }, if psnr { "---:|" } else { "" });
     for r in rows {
         let hits = (r.hit_fraction * (r.width as f64 * r.height as f64)).max(1.0);
         let _ = write!(
@@ -454,8 +486,8 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
             let floor_ms = gflop / peak * 1e3;
             let _ = write!(out, " {rate:.1} | {:.1}% | {floor_ms:.2} | {:.1}× |", 100.0 * rate / peak, r.total_ms / floor_ms.max(1e-9));
         }
-        if rules {
-            let _ = write!(out, " {} |", r.psnr_vs_first.map_or("–".into(), |p| format!("{p:.1}")));
+        if psnr {
+            let _ = write!(out, " {} |", r.psnr_vs_first.map_or("–".into(), |p| if p.is_infinite() { "∞ (same frame)".into() } else { format!("{p:.1}") }));
         }
         let _ = writeln!(out);
     }
