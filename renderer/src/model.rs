@@ -220,6 +220,11 @@ impl Segments {
         }
     }
 
+    /// No segment yet, closed or open (as [`Self::new`] makes it).
+    pub fn is_empty(&self) -> bool {
+        self.n_closed == 0 && self.open.is_none()
+    }
+
     /// Closes `run` as [`Tracker::sample`] would have closed it, had it been the open run
     /// (`is_primary`: it holds the ray's heaviest sample so far), for callers that track the
     /// open run themselves (the fast renderer, 8 rays at a time): at a sample past the gap,
@@ -303,6 +308,14 @@ pub struct MultiHit {
 }
 
 impl MultiHit {
+    /// One query at `t`, blended with weight 1: what [`Segments::choose`] gives a ray whose
+    /// samples form a single segment (holding its heaviest sample).
+    pub fn single(m: MarchHit, t: f32) -> Self {
+        let mut out = Self { march: m, count: 1, ..Default::default() };
+        (out.t[0], out.beta[0]) = (t, 1.0);
+        out
+    }
+
     /// The one-hit rule: the max-weight sample as the only query (none without weight).
     pub fn one(m: MarchHit) -> Self {
         let mut out = Self { march: m, count: u32::from(m.w_max > 0.0), ..Default::default() };
