@@ -103,6 +103,14 @@ pub enum March {
     Avx512,
 }
 
+impl std::str::FromStr for March {
+    type Err = String;
+    /// By [`March::name`].
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Self::Avx512, Self::Avx2, Self::Ray].into_iter().find(|m| m.name() == s).ok_or_else(|| "the marches are avx512, avx2 and ray".to_string())
+    }
+}
+
 /// Whether the CPU has what [`v4`] is compiled for.
 fn wide_lanes() -> bool {
     #[cfg(target_arch = "x86_64")]
@@ -715,14 +723,8 @@ impl FastPrepared {
             // check `wide_lanes`).
             unsafe {
                 let gap_t = rule.gap_steps * step;
-                // The lane's segments go to `choose`, fresh ones stay for its next ray.
-                let fresh = Segments::new(gap_t);
-                let multi = |i, o, d, m, segments: &mut Segments, only: Option<f32>| {
-                    take(i, o, d, match only {
-                        Some(t) => MultiHit::single(m, t),
-                        None => std::mem::replace(segments, fresh.clone()).choose(m, rule),
-                    })
-                };
+                // The lane's segments are left empty for its next ray.
+                let multi = |i, o, d, m, segments: &mut Segments, run| take(i, o, d, segments.finish(run, m, rule));
                 match (self.march == March::Avx512, rule.one_hit()) {
                     (true, true) => v4::march_wave::<false, _>(self, f, settings, step, gap_t, y0, bounds, n, |i, o, d, m, _, _| take(i, o, d, MultiHit::one(m))),
                     (true, false) => v4::march_wave::<true, _>(self, f, settings, step, gap_t, y0, bounds, n, multi),
@@ -1168,14 +1170,13 @@ mod v3 {
     /// dead block: σ = 0, which changes nothing. Each lane takes its samples in order by the
     /// reference's rule, so every ray's result is [`FastPrepared::march`]'s. The steps have no
     /// branch on the data: lanes that finish are frozen, and every [`STEPS`] steps they take
-    /// the band's next pixels. `finish(pixel, o, d, hit, tracker, only)` gets every pixel of
-    /// the band once; `only` is the peak of the ray's segment when it has just one (multi-hit;
-    /// its tracker is then empty), which saves the per-ray bookkeeping of
-    /// [`Segments::choose`] for most rays (1.7–1.9% of a lego frame).
+    /// the band's next pixels. `finish(pixel, o, d, hit, tracker, run)` gets every pixel of
+    /// the band once, with the ray's closed segments and its open run (multi-hit), for
+    /// [`Segments::finish`].
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    pub(super) fn march_wave<const MULTI: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments, Option<f32>)>(
+    pub(super) fn march_wave<const MULTI: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments, Option<(Segment, bool)>)>(
         p: &FastPrepared,
         f: &RayFrame,
         s: &RenderSettings,
@@ -1198,7 +1199,7 @@ mod v3 {
     /// functions compiled for those features.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    pub(super) unsafe fn march_wave_in<const MULTI: bool, const WIDE: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments, Option<f32>)>(
+    pub(super) unsafe fn march_wave_in<const MULTI: bool, const WIDE: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments, Option<(Segment, bool)>)>(
         p: &FastPrepared,
         f: &RayFrame,
         s: &RenderSettings,
@@ -1302,18 +1303,10 @@ mod v3 {
                 let l = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
                 let hit = MarchHit { t_hit: wave.t_hit[l], alpha_c: 1.0 - wave.transmittance[l], w_max: wave.w_max[l], samples: wave.samples[l] };
-                // The open run closes here (as `Segments::select` would close it), unless it
-                // is the ray's only one: then `choose` would query its peak alone, β = 1.
-                let mut only = None;
-                if MULTI && runs.open[l] != 0 {
-                    if runs.primary[l] != 0 && segments[l].is_empty() {
-                        only = Some(runs.peak_t[l]);
-                    } else {
-                        segments[l].close_run(runs.segment(l), runs.primary[l] != 0);
-                    }
-                }
+                // The open run, which `Segments::finish` closes.
+                let run = (MULTI && runs.open[l] != 0).then(|| (runs.segment(l), runs.primary[l] != 0));
                 let (o, d) = (Vec3::new(wave.o[0][l], wave.o[1][l], wave.o[2][l]), Vec3::new(wave.d[0][l], wave.d[1][l], wave.d[2][l]));
-                finish(pixel[l], o, d, hit, &mut segments[l], only);
+                finish(pixel[l], o, d, hit, &mut segments[l], run);
                 if !refill(l, &mut wave, &mut runs, &mut pixel) {
                     active &= !(1 << l);
                 }
@@ -1723,7 +1716,7 @@ mod v4 {
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    pub(super) fn march_wave<const MULTI: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments, Option<f32>)>(
+    pub(super) fn march_wave<const MULTI: bool, F: FnMut(usize, Vec3, Vec3, MarchHit, &mut Segments, Option<(Segment, bool)>)>(
         p: &FastPrepared,
         f: &RayFrame,
         s: &RenderSettings,

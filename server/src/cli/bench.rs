@@ -124,7 +124,7 @@ pub enum BenchCommand {
         /// same frames; the PSNR column shows it): avx512, avx2, ray. Default: the widest
         /// this CPU has.
         #[arg(long, value_delimiter = ',')]
-        marches: Vec<MarchChoice>,
+        marches: Vec<nephele_renderer::fast::March>,
         #[command(flatten)]
         knobs: super::RenderKnobs,
     },
@@ -209,7 +209,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
                 eprintln!("benchmarking {} ...", backend.name());
                 let variants = if b == BackendChoice::Cpu && !marches.is_empty() {
                     let fast = nephele_renderer::FastCpuBackend;
-                    marches.iter().map(|m| Ok((format!("cpu, {} march", m.march().name()), fast.prepare_with_march(a.clone(), m.march())?))).collect::<Result<Vec<_>>>()?
+                    marches.iter().map(|&m| Ok((format!("cpu, {} march", m.name()), fast.prepare_with_march(a.clone(), m)?))).collect::<Result<Vec<_>>>()?
                 } else {
                     vec![(backend.name(), backend.prepare(a.clone())?)]
                 };
@@ -219,12 +219,10 @@ pub fn run(what: BenchCommand) -> Result<()> {
                 }
             }
             let peak = nephele_renderer::mlp::peak_fma_gflops();
+            // The march the plain `cpu` rows used.
+            let march = if rows.iter().any(|r| r.backend == "cpu") { format!("\nfast CPU march: {}", nephele_renderer::fast::March::detect().describe()) } else { String::new() };
             match peak {
-                Some((p, threads, level)) => println!(
-                    "asset: {asset}\nfast CPU march (default): {}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}",
-                    nephele_renderer::fast::March::detect().describe(),
-                    format_table_with_peak(&rows, Some(p))
-                ),
+                Some((p, threads, level)) => println!("asset: {asset}{march}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}", format_table_with_peak(&rows, Some(p))),
                 None => println!("asset: {asset}\n\n{}", format_table(&rows)),
             }
             if !batches.is_empty() {
@@ -318,28 +316,6 @@ pub struct RenderBenchRow {
     pub samples_per_ray: f64,
     /// PSNR of the frame against the same view under the default rule, when the knobs differ.
     pub psnr_vs_first: Option<f64>,
-}
-
-/// A march of the `cpu` backend ([`nephele_renderer::fast::March`]), for `bench render --marches`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum MarchChoice {
-    /// Two groups of 16 AVX-512 lanes.
-    Avx512,
-    /// Four groups of 8 AVX2 lanes.
-    Avx2,
-    /// One ray at a time.
-    Ray,
-}
-
-impl MarchChoice {
-    fn march(self) -> nephele_renderer::fast::March {
-        use nephele_renderer::fast::March;
-        match self {
-            Self::Avx512 => March::Avx512,
-            Self::Avx2 => March::Avx2,
-            Self::Ray => March::Ray,
-        }
-    }
 }
 
 /// Median of `runs` renders of an orbit view at each size (after one warm-up), for each
