@@ -211,6 +211,9 @@ struct LiveCells {
     /// most [`FOOTPRINT_BLOCKS`] of them.
     blocks: Vec<UVec3>,
     block: u32,
+    /// Whether the footprint prepass runs (off only in the test that checks it changes no
+    /// frame).
+    footprints: bool,
     /// The density values as the f16 bits they are stored as (`None` if some value is not
     /// an f16, as in cubes built in memory): half the bytes, and the two corners of a
     /// trilinear sample that differ in x are one 32-bit read.
@@ -330,7 +333,7 @@ impl LiveCells {
             .then(|| d.values.iter().map(|&v| half::f16::from_f32(v)).collect::<Vec<_>>())
             .filter(|h| h.iter().zip(&d.values).all(|(h, v)| h.to_f32().to_bits() == v.to_bits()))
             .map(|h| h.into_iter().map(half::f16::to_bits).collect());
-        Self { index, blocks: cells.clone(), block: 1, cells, values_f16 }.with_blocks_at_most(FOOTPRINT_BLOCKS)
+        Self { index, blocks: cells.clone(), block: 1, footprints: true, cells, values_f16 }.with_blocks_at_most(FOOTPRINT_BLOCKS)
     }
 
     /// Merges the live cells into blocks for the footprints, doubling the block's side (up to
@@ -598,18 +601,17 @@ impl Footprints {
                 let y = k.cy as f64 - k.fy as f64 * v.dot(c1) / z - 0.5;
                 (x_min, x_max, y_min, y_max) = (x_min.min(x), x_max.max(x), y_min.min(y), y_max.max(y));
             }
-            if x_max < -1.0 || y_max < -1.0 || x_min > w || y_min > h {
+            // The pixels whose centres fall inside the hull of the corners' projections (pixel
+            // i's ray goes through i here), with a margin of 1/16 pixel, far above the rounding
+            // of the rays and their samples (~1e-4 pixel).
+            const MARGIN: f64 = 1.0 / 16.0;
+            let (x0, x1) = ((x_min - MARGIN).ceil().max(0.0), (x_max + MARGIN).floor().min(w - 1.0));
+            let (y0, y1) = ((y_min - MARGIN).ceil().max(0.0), (y_max + MARGIN).floor().min(h - 1.0));
+            if x0 > x1 || y0 > y1 {
                 return Ok(None);
             }
             let near = (camera.clamp(lo, hi) - camera).length();
-            Ok(Some(CellRect {
-                x0: (x_min.floor() - 1.0).clamp(0.0, w - 1.0) as u32,
-                x1: (x_max.ceil() + 1.0).clamp(0.0, w - 1.0) as u32,
-                y0: (y_min.floor() - 1.0).clamp(0.0, h - 1.0) as u32,
-                y1: (y_max.ceil() + 1.0).clamp(0.0, h - 1.0) as u32,
-                t_lo: (near - t_shift - slack) as f32,
-                t_hi: (far - t_shift + slack) as f32,
-            }))
+            Ok(Some(CellRect { x0: x0 as u32, x1: x1 as u32, y0: y0 as u32, y1: y1 as u32, t_lo: (near - t_shift - slack) as f32, t_hi: (far - t_shift + slack) as f32 }))
         };
         // In parallel: a frame has one view, and this runs before its bands.
         let chunks: Vec<Vec<CellRect>> = cells.par_chunks(1024).map(|chunk| chunk.iter().filter_map(|c| rect(c).transpose()).collect::<Result<_, ()>>()).collect::<Result<_, ()>>().ok()?;
@@ -705,7 +707,7 @@ impl PreparedAsset for FastPrepared {
         }
         let rule = settings.hit_rule(&asset.march.hits);
         let step = asset.march.step * settings.step_scale;
-        let footprints: Vec<Option<Footprints>> = rays.par_iter().map(|f| Footprints::new(f, &self.live, &asset.density, step)).collect();
+        let footprints: Vec<Option<Footprints>> = rays.par_iter().map(|f| Footprints::new(f, &self.live, &asset.density, step).filter(|_| self.live.footprints)).collect();
         let per_band: Vec<BandStats> = bands
             .into_par_iter()
             .map(|(v, y0, rgba, depth)| {
@@ -2370,10 +2372,12 @@ mod tests {
             let (wave, ray) = (prepare(March::Avx2), prepare(March::Ray));
             // The AVX-512 march where the CPU has it.
             let wide = wide_lanes().then(|| prepare(March::Avx512));
-            // Footprints of merged blocks bound the rays more loosely: the extra samples lie
-            // in dead cells and change nothing.
+            // Footprints of merged blocks bound the rays more loosely, and without footprints
+            // every ray is marched whole: the extra samples lie in dead cells and change
+            // nothing.
             let merged = FastPrepared { live: LiveCells::new(&asset.density).with_blocks_at_most(asset.density.brick_count() / 20), ..prepare(March::Avx2) };
             assert!(merged.live.block >= 2, "{} blocks of {}", merged.live.blocks.len(), merged.live.block);
+            let whole = FastPrepared { live: LiveCells { footprints: false, ..LiveCells::new(&asset.density) }, ..prepare(March::Avx2) };
             for settings in [
                 RenderSettings { hit_tau: Some(1.0), ..Default::default() },
                 RenderSettings::default(),
@@ -2384,12 +2388,14 @@ mod tests {
                 let b = ray.render(&views, &settings).unwrap();
                 let c = merged.render(&views, &settings).unwrap();
                 assert_eq!((a.stats.hits, a.stats.queries), (c.stats.hits, c.stats.queries), "{settings:?}: merged footprints");
+                let e = whole.render(&views, &settings).unwrap();
+                assert_eq!((a.stats.hits, a.stats.samples, a.stats.queries), (e.stats.hits, e.stats.samples, e.stats.queries), "{settings:?}: no footprints");
                 let d = wide.as_ref().map(|w| w.render(&views, &settings).unwrap());
                 if let Some(d) = &d {
                     assert_eq!((a.stats.hits, a.stats.samples, a.stats.queries), (d.stats.hits, d.stats.samples, d.stats.queries), "{settings:?}: AVX-512 march");
                 }
                 let wide_frames = d.iter().flat_map(|d| a.frames.iter().zip(&d.frames));
-                for (fa, fb) in a.frames.iter().zip(&b.frames).chain(a.frames.iter().zip(&c.frames)).chain(wide_frames) {
+                for (fa, fb) in a.frames.iter().zip(&b.frames).chain(a.frames.iter().zip(&c.frames)).chain(a.frames.iter().zip(&e.frames)).chain(wide_frames) {
                     assert!(fa.rgba == fb.rgba, "{settings:?}: the colours differ");
                     assert!(fa.depth.iter().zip(&fb.depth).all(|(x, y)| x.to_bits() == y.to_bits()), "{settings:?}: the depths differ");
                 }
