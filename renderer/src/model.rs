@@ -234,7 +234,7 @@ impl Segments {
 
     /// The segments queried under `rule` for a ray of coarse opacity `alpha_c`, primary
     /// first, and how many there are (0 without any weight).
-    pub fn select(mut self, alpha_c: f32, rule: &HitRule) -> ([Segment; MAX_HITS], usize) {
+    pub fn select(&mut self, alpha_c: f32, rule: &HitRule) -> ([Segment; MAX_HITS], usize) {
         self.close();
         let Some(p) = self.primary else { return ([Segment::default(); MAX_HITS], 0) };
         let mut chosen = [self.closed[p]; MAX_HITS];
@@ -258,26 +258,39 @@ impl Segments {
 
     /// [`Self::choose`] for a caller that tracks the open run itself ([`Self::close_run`]):
     /// `run` is the ray's last run if it is still open (and whether it holds the heaviest
-    /// sample), and `self` is left empty for the next ray. A ray whose only run is that one
-    /// gets its peak as the only query, β = 1 — what `choose` gives it — without the
-    /// bookkeeping (most rays of a scene: 2% of a lego frame on the fast CPU renderer).
+    /// sample), and `self` is left empty for the next ray. Two cases skip the bookkeeping
+    /// with what `choose` gives them: a ray whose only run is that one gets its peak as the
+    /// only query, β = 1 (most rays that hit: 2% of a lego frame on the fast CPU renderer),
+    /// and a ray without any run gets none (rays that met no density: 3%). The others are
+    /// chosen in place, not moved out (2%).
     pub fn finish(&mut self, run: Option<(Segment, bool)>, m: MarchHit, rule: &HitRule) -> MultiHit {
-        if let Some((only, true)) = run
-            && self.n_closed == 0
-            && self.open.is_none()
-        {
-            let mut out = MultiHit { march: m, count: 1, ..Default::default() };
-            (out.t[0], out.beta[0]) = (only.peak_t, 1.0);
-            return out;
+        if self.n_closed == 0 && self.open.is_none() {
+            match run {
+                Some((only, true)) => {
+                    let mut out = MultiHit { march: m, count: 1, ..Default::default() };
+                    (out.t[0], out.beta[0]) = (only.peak_t, 1.0);
+                    return out;
+                }
+                None => return MultiHit { march: m, ..Default::default() },
+                Some((_, false)) => {}
+            }
         }
         if let Some((run, is_primary)) = run {
             self.close_run(run, is_primary);
         }
-        std::mem::replace(self, Self::new(self.gap_t)).choose(m, rule)
+        let out = self.choose_mut(m, rule);
+        (self.n_closed, self.open, self.open_is_primary, self.primary) = (0, None, false, None);
+        out
     }
 
+
     /// The queries under `rule`, from the march's result `m`.
-    pub fn choose(self, m: MarchHit, rule: &HitRule) -> MultiHit {
+    pub fn choose(mut self, m: MarchHit, rule: &HitRule) -> MultiHit {
+        self.choose_mut(m, rule)
+    }
+
+    /// [`Self::choose`] on `self` in place (its open run is closed; the caller clears it).
+    fn choose_mut(&mut self, m: MarchHit, rule: &HitRule) -> MultiHit {
         let mut out = MultiHit { march: m, ..Default::default() };
         let (chosen, n) = self.select(m.alpha_c, rule);
         let total: f32 = chosen[..n].iter().map(|s| s.weight).sum();
