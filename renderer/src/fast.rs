@@ -26,8 +26,9 @@
 //!   shaded [`TILE`] at a time: inputs written feature-major (hash corners and 8-bit
 //!   diffuse corners gathered 8 queries at a time with AVX2), the MLP run as
 //!   register-blocked matrix products ([`MlpKernel::forward_tile`], AVX-512 or AVX2 + FMA
-//!   at run time, skipping hidden units that are zero for the whole tile), the view inputs and the sigmoids and compositing 8 queries at a time too
-//!   (0.938–0.945 of the time per lego frame against one query at a time). Fused
+//!   at run time, skipping hidden units that are zero for the whole tile), the view inputs
+//!   and the sigmoids and compositing 8 queries at a time too (0.938–0.945 of the time per
+//!   lego frame against one query at a time). Fused
 //!   multiply-adds round differently from the reference's separate ones (output differences
 //!   ~1e-6), and the sigmoids use the march's `exp` (within 4 ulp of libm's).
 //! - **The hash laid out by position.** The perfect spatial hash's stored vertices are
@@ -271,8 +272,8 @@ fn dead_radii(index: &[i32], g: usize) -> Vec<u32> {
             for (axis, stride) in [(1, words), (2, g * words)] {
                 let rising = oct >> axis & 1 != 0;
                 let coord = |row: usize| if axis == 1 { row % g } else { row / g };
-                let order: Box<dyn Iterator<Item = usize>> = if rising { Box::new(0..rows) } else { Box::new((0..rows).rev()) };
-                for row in order {
+                for i in 0..rows {
+                    let row = if rising { i } else { rows - 1 - i };
                     let has_next = if rising { coord(row) + 1 < g } else { coord(row) > 0 };
                     if has_next {
                         let at = row * words;
@@ -1191,6 +1192,10 @@ mod v3 {
         /// Per axis, `(size[a] / res) / d[a]`: ray parameter per fine-grid unit (+∞
         /// where the ray is parallel to the axis).
         pub(super) t_per_fine: [[f32; LANES]; 3],
+        /// Where the ray's octant keeps its dead-box radius in a dead cell's index entry:
+        /// 3·oct, oct's bit a set where the ray rises along axis a (`t_per_fine[a] > 0`;
+        /// [`dead_radii`]).
+        pub(super) octant_shift: [i32; LANES],
         /// The ray parameter where it enters the box (the lattice's origin).
         pub(super) t0: [f32; LANES],
         /// The next lattice sample, and the end of the ray's samples.
@@ -1319,6 +1324,7 @@ mod v3 {
             for a in 0..3 {
                 (wave.o[a][lane], wave.d[a][lane], wave.t_per_fine[a][lane]) = (o[a], d[a], t_per_fine[a]);
             }
+            wave.octant_shift[lane] = (0..3).filter(|&a| t_per_fine[a] > 0.0).map(|a| 3 << a).sum();
             (wave.t0[lane], wave.k[lane], wave.k_end[lane]) = (t0, k_first, k_end);
             (wave.transmittance[lane], wave.w_max[lane], wave.t_hit[lane], wave.samples[lane]) = (1.0, 0.0, 0.0, 0);
             (runs.open[lane], runs.primary[lane]) = (0, 0);
@@ -1627,15 +1633,13 @@ mod v3 {
             let k1 = _mm256_add_epi32(l.k, _mm256_set1_epi32(1));
             // The dead box's radius R in cells for the ray's octant, from its 3 bits at 3·oct
             // (0 in live cells, whose jump is not taken).
-            let up = [0, 1, 2].map(|a| _mm256_cmp_ps::<_CMP_GT_OQ>(ld(&wave.t_per_fine[a]), zero));
-            let shift = [0, 1, 2].map(|a| _mm256_and_si256(_mm256_castps_si256(up[a]), _mm256_set1_epi32(3 << a)));
-            let shift = _mm256_add_epi32(shift[0], _mm256_add_epi32(shift[1], shift[2]));
             let radii = _mm256_max_epi32(_mm256_sub_epi32(_mm256_set1_epi32(-1), l.brick), _mm256_setzero_si256());
-            let radius = _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srlv_epi32(radii, shift), _mm256_set1_epi32(7)));
+            let radius = _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srlv_epi32(radii, ldi(&wave.octant_shift)), _mm256_set1_epi32(7)));
             let exit = |a: usize| {
                 let t_per = ld(&wave.t_per_fine[a]);
+                let up = _mm256_cmp_ps::<_CMP_GT_OQ>(t_per, zero);
                 // The face the ray leaves the box by, c + R + 1 or c − R cells, in fine-grid units.
-                let face = _mm256_blendv_ps(_mm256_sub_ps(zero, radius), _mm256_add_ps(radius, _mm256_set1_ps(1.0)), up[a]);
+                let face = _mm256_blendv_ps(_mm256_sub_ps(zero, radius), _mm256_add_ps(radius, _mm256_set1_ps(1.0)), up);
                 let bound = _mm256_mul_ps(_mm256_add_ps(l.c[a], face), _mm256_set1_ps(rule.r));
                 // (bound − g)·t_per: ≥ 0, or NaN for a parallel ray (0·∞), which `min_ps`
                 // drops in favour of its second operand.
@@ -2094,15 +2098,13 @@ mod v4 {
             }
             let k1 = _mm512_add_epi32(l.k, _mm512_set1_epi32(1));
             // The dead box's radius for the ray's octant (as `v3::rule8`).
-            let up = [0, 1, 2].map(|a| _mm512_cmp_ps_mask::<_CMP_GT_OQ>(ld(&wave.t_per_fine[a]), zero));
-            let shift = [0, 1, 2].map(|a| _mm512_maskz_mov_epi32(up[a], _mm512_set1_epi32(3 << a)));
-            let shift = _mm512_add_epi32(shift[0], _mm512_add_epi32(shift[1], shift[2]));
             let radii = _mm512_max_epi32(_mm512_sub_epi32(_mm512_set1_epi32(-1), l.brick), _mm512_setzero_si512());
-            let radius = _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srlv_epi32(radii, shift), _mm512_set1_epi32(7)));
+            let radius = _mm512_cvtepi32_ps(_mm512_and_si512(_mm512_srlv_epi32(radii, ldi(&wave.octant_shift)), _mm512_set1_epi32(7)));
             const CEIL: i32 = _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC;
             let exit = |a: usize| {
                 let t_per = ld(&wave.t_per_fine[a]);
-                let face = _mm512_mask_blend_ps(up[a], _mm512_sub_ps(zero, radius), _mm512_add_ps(radius, one));
+                let up = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(t_per, zero);
+                let face = _mm512_mask_blend_ps(up, _mm512_sub_ps(zero, radius), _mm512_add_ps(radius, one));
                 let bound = _mm512_mul_ps(_mm512_add_ps(l.c[a], face), _mm512_set1_ps(rule.r));
                 // ≥ 0, or NaN for a parallel ray (0·∞), which `min_ps` drops for its second operand.
                 _mm512_mul_ps(_mm512_sub_ps(bound, l.g[a]), t_per)

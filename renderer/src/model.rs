@@ -283,7 +283,6 @@ impl Segments {
         out
     }
 
-
     /// The queries under `rule`, from the march's result `m`.
     pub fn choose(mut self, m: MarchHit, rule: &HitRule) -> MultiHit {
         self.choose_mut(m, rule)
@@ -450,7 +449,8 @@ mod tests {
         let m = MarchHit { t_hit: 1.5, alpha_c: 0.9, w_max: 0.6, samples: 9 };
         let seg = |t: f32, w: f32| Segment { weight: w, peak_w: w / 2.0, peak_t: t, first_t: t - 0.1, last_t: t + 0.1 };
         // (closed before, the open run and whether it is the primary)
-        let cases: [(Vec<(Segment, bool)>, Option<(Segment, bool)>); 5] = [
+        type Case = (Vec<(Segment, bool)>, Option<(Segment, bool)>);
+        let cases: [Case; 5] = [
             (vec![], Some((seg(1.5, 0.7), true))),
             (vec![(seg(1.0, 0.2), false)], Some((seg(1.5, 0.7), true))),
             (vec![(seg(1.5, 0.7), true)], Some((seg(2.5, 0.2), false))),
