@@ -101,9 +101,14 @@ impl TextureCubes {
     pub fn fine_res(&self) -> u32 {
         self.grid * self.brick
     }
-    /// Object-space point → fine-grid coordinates.
+    /// Fine-grid units per object-space unit along each axis (`b·r / size`).
+    pub fn fine_per_unit(&self) -> Vec3 {
+        self.fine_res() as f32 / self.bounds.size()
+    }
+    /// Object-space point → fine-grid coordinates: `(p − min) · (b·r / size)` (a product,
+    /// not a quotient, so that the vector kernels take no division per sample).
     pub fn to_fine(&self, p: Vec3) -> Vec3 {
-        (p - self.bounds.min) / self.bounds.size() * self.fine_res() as f32
+        (p - self.bounds.min) * self.fine_per_unit()
     }
     pub fn cell_index(&self, cell: UVec3) -> usize {
         let b = self.grid as usize;

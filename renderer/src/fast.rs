@@ -221,6 +221,9 @@ struct LiveCells {
     values_f16: Option<Vec<u16>>,
 }
 
+/// Largest index grid whose cell numbers (below `b³ ≤ 2²⁴`) the march computes in f32.
+const EXACT_GRID: i32 = 256;
+
 /// Largest dead radius R the wavefront march jumps across: a box of R + 1 index cells per
 /// side from the sample's cell towards where its ray heads (R in 3 bits per octant).
 const MAX_SKIP_RADIUS: u32 = 7;
@@ -1012,7 +1015,7 @@ mod v3 {
             unsafe {
                 let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
                 let k = _mm256_add_epi32(_mm256_set1_epi32(k0 + at as i32), lane);
-                // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) / size · res.
+                // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) · (res / size).
                 let t = _mm256_add_ps(_mm256_set1_ps(t0), _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
                 let g = fine8(density, [_mm256_set1_ps(o.x), _mm256_set1_ps(o.y), _mm256_set1_ps(o.z)], [_mm256_set1_ps(d.x), _mm256_set1_ps(d.y), _mm256_set1_ps(d.z)], t);
                 let (c, brick) = cells8(density, live, g);
@@ -1121,10 +1124,9 @@ mod v3 {
                 // The diffuse cubes, as `TextureCubes::sample_with`: g = to_fine(p),
                 // cell = clamp(trunc(g / r), 0, grid − 1), u = clamp(g − cell·r, 0, r),
                 // base = min(trunc u, r − 1), f = u − base.
-                let res = cubes.fine_res() as f32;
                 let r = cubes.brick as f32;
-                let (min, size) = (cubes.bounds.min, cubes.bounds.size());
-                let fine = |v: __m256, a: usize| _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(v, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res));
+                let (min, scale) = (cubes.bounds.min, cubes.fine_per_unit());
+                let fine = |v: __m256, a: usize| _mm256_mul_ps(_mm256_sub_ps(v, _mm256_set1_ps(min[a])), _mm256_set1_ps(scale[a]));
                 let cell = |g: __m256| _mm256_floor_ps(_mm256_min_ps(_mm256_max_ps(_mm256_div_ps(g, _mm256_set1_ps(r)), zero), _mm256_set1_ps(cubes.grid as f32 - 1.0)));
                 let inside = |g: __m256, c: __m256| {
                     let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g, _mm256_mul_ps(c, _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
@@ -1657,15 +1659,15 @@ mod v3 {
         }
     }
 
-    /// The fine-grid coordinates `g = (o + t·d − min) / size · res` of 8 samples, as
+    /// The fine-grid coordinates `g = (o + t·d − min) · (res / size)` of 8 samples, as
     /// [`TextureCubes::to_fine`] computes them (the same operations, so the same bits).
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     fn fine8(density: &TextureCubes, o: [__m256; 3], d: [__m256; 3], t: __m256) -> [__m256; 3] {
-        let (min, size, res) = (density.bounds.min, density.bounds.size(), density.fine_res() as f32);
+        let (min, scale) = (density.bounds.min, density.fine_per_unit());
         let axis = |a: usize| {
             let p = _mm256_add_ps(o[a], _mm256_mul_ps(t, d[a]));
-            _mm256_mul_ps(_mm256_div_ps(_mm256_sub_ps(p, _mm256_set1_ps(min[a])), _mm256_set1_ps(size[a])), _mm256_set1_ps(res))
+            _mm256_mul_ps(_mm256_sub_ps(p, _mm256_set1_ps(min[a])), _mm256_set1_ps(scale[a]))
         };
         [axis(0), axis(1), axis(2)]
     }
@@ -1683,8 +1685,14 @@ mod v3 {
         let over_r = |g: __m256| if density.brick.is_power_of_two() { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
         let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), _mm256_setzero_ps()), _mm256_set1_ps((b - 1) as f32));
         let c = [cell(g[0]), cell(g[1]), cell(g[2])];
-        let bi = _mm256_set1_epi32(b);
-        let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(c[0]), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(c[1]), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(c[2])))));
+        let cell_at = if b <= EXACT_GRID {
+            // In f32 (exact: integers below 2²⁴), shorter than two integer multiplies.
+            let bf = _mm256_set1_ps(b as f32);
+            _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(c[2], bf, c[1]), bf, c[0]))
+        } else {
+            let bi = _mm256_set1_epi32(b);
+            _mm256_add_epi32(_mm256_cvttps_epi32(c[0]), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(c[1]), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(c[2])))))
+        };
         // SAFETY: each coordinate is clamped to 0..b, so `cell_at < b³ = live.len()`.
         (c, unsafe { _mm256_i32gather_epi32::<4>(live.as_ptr(), cell_at) })
     }
@@ -1706,14 +1714,15 @@ mod v3 {
         let split = |a: usize| {
             let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
             let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
-            (_mm256_sub_ps(u, base), _mm256_cvttps_epi32(base))
+            (_mm256_sub_ps(u, base), base)
         };
         let (fx, bx) = split(0);
         let (fy, by) = split(1);
         let (fz, bz) = split(2);
-        let ei = _mm256_set1_epi32(e);
         let start = _mm256_mullo_epi32(brick, _mm256_set1_epi32(density.brick_corners() as i32));
-        let idx0 = _mm256_add_epi32(start, _mm256_add_epi32(bx, _mm256_mullo_epi32(ei, _mm256_add_epi32(by, _mm256_mullo_epi32(ei, bz)))));
+        // The corner's offset in its brick, in f32 (exact: below (r + 1)³ ≤ 33³).
+        let ef = _mm256_set1_ps(e as f32);
+        let idx0 = _mm256_add_epi32(start, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx)));
         let one = _mm256_set1_ps(1.0);
         let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
         let mut acc = zero;
@@ -1949,11 +1958,11 @@ mod v4 {
             let k = _mm512_loadu_si512(wave.k.as_ptr().add(at).cast());
             let t0 = ld(&wave.t0);
             let t = _mm512_add_ps(t0, _mm512_mul_ps(_mm512_add_ps(_mm512_cvtepi32_ps(k), _mm512_set1_ps(0.5)), _mm512_set1_ps(step)));
-            // g = (o + t·d − min) / size · res, as `TextureCubes::to_fine`.
-            let (min, size, res) = (density.bounds.min, density.bounds.size(), density.fine_res() as f32);
+            // g = (o + t·d − min) · (res / size), as `TextureCubes::to_fine`.
+            let (min, scale) = (density.bounds.min, density.fine_per_unit());
             let fine = |a: usize| {
                 let p = _mm512_add_ps(ld(&wave.o[a]), _mm512_mul_ps(t, ld(&wave.d[a])));
-                _mm512_mul_ps(_mm512_div_ps(_mm512_sub_ps(p, _mm512_set1_ps(min[a])), _mm512_set1_ps(size[a])), _mm512_set1_ps(res))
+                _mm512_mul_ps(_mm512_sub_ps(p, _mm512_set1_ps(min[a])), _mm512_set1_ps(scale[a]))
             };
             let g = [fine(0), fine(1), fine(2)];
             // cell = clamp(trunc(g / r), 0, b − 1) (g · 1/r is g / r to the bit for r a power
@@ -1962,8 +1971,14 @@ mod v4 {
             let over_r = |g: __m512| if density.brick.is_power_of_two() { _mm512_mul_ps(g, _mm512_set1_ps(1.0 / r)) } else { _mm512_div_ps(g, _mm512_set1_ps(r)) };
             let cell = |g: __m512| _mm512_min_ps(_mm512_max_ps(_mm512_cvtepi32_ps(_mm512_cvttps_epi32(over_r(g))), _mm512_setzero_ps()), _mm512_set1_ps((b - 1) as f32));
             let c = [cell(g[0]), cell(g[1]), cell(g[2])];
-            let bi = _mm512_set1_epi32(b);
-            let cell_at = _mm512_add_epi32(_mm512_cvttps_epi32(c[0]), _mm512_mullo_epi32(bi, _mm512_add_epi32(_mm512_cvttps_epi32(c[1]), _mm512_mullo_epi32(bi, _mm512_cvttps_epi32(c[2])))));
+            // As `v3::cells8`.
+            let cell_at = if b <= EXACT_GRID {
+                let bf = _mm512_set1_ps(b as f32);
+                _mm512_cvttps_epi32(_mm512_fmadd_ps(_mm512_fmadd_ps(c[2], bf, c[1]), bf, c[0]))
+            } else {
+                let bi = _mm512_set1_epi32(b);
+                _mm512_add_epi32(_mm512_cvttps_epi32(c[0]), _mm512_mullo_epi32(bi, _mm512_add_epi32(_mm512_cvttps_epi32(c[1]), _mm512_mullo_epi32(bi, _mm512_cvttps_epi32(c[2])))))
+            };
             // Each coordinate is clamped to 0..b, so `cell_at < b³ = live.len()`.
             let brick = _mm512_i32gather_epi32::<4>(cell_at, live.as_ptr());
             Located { k, t0, t, g, c, brick }
@@ -2001,14 +2016,14 @@ mod v4 {
         let split = |a: usize| {
             let u = _mm512_min_ps(_mm512_max_ps(_mm512_sub_ps(g[a], _mm512_mul_ps(c[a], _mm512_set1_ps(r))), zero), _mm512_set1_ps(r));
             let base = _mm512_min_ps(_mm512_cvtepi32_ps(_mm512_cvttps_epi32(u)), _mm512_set1_ps(r - 1.0));
-            (_mm512_sub_ps(u, base), _mm512_cvttps_epi32(base))
+            (_mm512_sub_ps(u, base), base)
         };
         let (fx, bx) = split(0);
         let (fy, by) = split(1);
         let (fz, bz) = split(2);
-        let ei = _mm512_set1_epi32(e);
         let start = _mm512_mullo_epi32(brick, _mm512_set1_epi32(density.brick_corners() as i32));
-        let idx0 = _mm512_add_epi32(start, _mm512_add_epi32(bx, _mm512_mullo_epi32(ei, _mm512_add_epi32(by, _mm512_mullo_epi32(ei, bz)))));
+        let ef = _mm512_set1_ps(e as f32);
+        let idx0 = _mm512_add_epi32(start, _mm512_cvttps_epi32(_mm512_fmadd_ps(_mm512_fmadd_ps(bz, ef, by), ef, bx)));
         let one = _mm512_set1_ps(1.0);
         let (hx, hy, hz) = (_mm512_sub_ps(one, fx), _mm512_sub_ps(one, fy), _mm512_sub_ps(one, fz));
         let mut acc = zero;

@@ -8,7 +8,7 @@
 // is `cell` (model.rs `sample_in_brick`).
 fn density_in_brick(origin: vec3<f32>, cell: vec3<f32>, p: vec3<f32>) -> f32 {
     let r = f32(params.density_brick);
-    let g = (p - params.bounds_min) / params.bounds_size * f32(params.density_grid * params.density_brick);
+    let g = (p - params.bounds_min) * (f32(params.density_grid * params.density_brick) / params.bounds_size);
     let u = clamp(g - cell * r, vec3<f32>(0.0), vec3<f32>(r));
     return textureSampleLevel(density_atlas, atlas_sampler, (origin + u + 0.5) / params.density_atlas_size, 0.0).r;
 }

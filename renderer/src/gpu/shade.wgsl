@@ -20,7 +20,7 @@ fn psh_find(p: vec3<u32>) -> i32 {
 
 fn diffuse_at(p: vec3<f32>) -> vec4<f32> {
     let r = f32(params.diffuse_brick);
-    let g = (p - params.bounds_min) / params.bounds_size * f32(params.diffuse_grid * params.diffuse_brick);
+    let g = (p - params.bounds_min) * (f32(params.diffuse_grid * params.diffuse_brick) / params.bounds_size);
     let cell = clamp(floor(g / r), vec3<f32>(0.0), vec3<f32>(f32(params.diffuse_grid) - 1.0));
     let u = clamp(g - cell * r, vec3<f32>(0.0), vec3<f32>(r));
     let c = vec3<u32>(cell);

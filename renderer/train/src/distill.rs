@@ -885,7 +885,7 @@ impl Student {
             return;
         };
         let n = res as f32;
-        let g = ((p - self.bounds.min) / self.bounds.size() * n).clamp(Vec3::ZERO, Vec3::splat(n));
+        let g = ((p - self.bounds.min) * (n / self.bounds.size())).clamp(Vec3::ZERO, Vec3::splat(n));
         let base = g.as_uvec3().as_vec3().min(Vec3::splat(n - 1.0));
         let f = g - base;
         for corner in 0..8u32 {
