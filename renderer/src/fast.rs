@@ -203,8 +203,9 @@ const FOOTPRINT_BLOCKS: usize = 32 * 1024;
 /// samples have α = 0 and change nothing). Every entry is negative or a brick the density
 /// holds.
 struct LiveCells {
-    /// `b³`, x fastest: the brick, or −1 − (the dead cell's radius per octant of ray
-    /// directions, 3 bits each: [`dead_radii`]).
+    /// `b³`, x fastest: the brick's first corner (brick × (r + 1)³, so that the march adds
+    /// no multiply between reading the entry and reading the corners), or −1 − (the dead
+    /// cell's radius per octant of ray directions, 3 bits each: [`dead_radii`]).
     index: Vec<i32>,
     cells: Vec<UVec3>,
     /// What the footprint prepass projects: the live cells merged into aligned blocks of
@@ -333,6 +334,11 @@ impl LiveCells {
                 *entry = -1 - radii as i32;
             }
         }
+        // Live entries: the brick's first corner.
+        let corners = d.brick_corners() as i32;
+        for entry in index.iter_mut().filter(|e| **e >= 0) {
+            *entry = entry.saturating_mul(corners);
+        }
         let values_f16 = (d.channels == 1)
             .then(|| d.values.iter().map(|&v| half::f16::from_f32(v)).collect::<Vec<_>>())
             .filter(|h| h.iter().zip(&d.values).all(|(h, v)| h.to_f32().to_bits() == v.to_bits()))
@@ -354,7 +360,8 @@ impl LiveCells {
 
     /// What the AVX2 kernels' gathers rely on: one density channel, a live entry per index
     /// cell, whole bricks, 32-bit offsets, and the f16 copy (if any) the size of the values.
-    /// (Every entry of `index` is negative or a brick below `brick_count`, by construction.)
+    /// (Every entry of `index` is negative or the first corner of a brick below
+    /// `brick_count`, by construction.)
     fn assert_fits(&self, density: &TextureCubes) {
         assert!(
             density.channels == 1
@@ -942,9 +949,9 @@ impl FastPrepared {
             let t = t0 + ((k0 + l as i32) as f32 + 0.5) * step;
             let g = density.to_fine(o + t * d);
             let cell = (g / r).as_uvec3().as_vec3().min(Vec3::splat(b - 1.0));
-            let brick = self.live.index[density.cell_index(cell.as_uvec3())];
-            if brick >= 0 {
-                sigma[l] = density.sample_in_brick::<1>(brick as usize, cell, g)[0];
+            let first = self.live.index[density.cell_index(cell.as_uvec3())];
+            if first >= 0 {
+                sigma[l] = density.sample_in_brick::<1>(first as usize / density.brick_corners(), cell, g)[0];
                 e[l] = exp_neg(sigma[l] * step);
             }
         }
@@ -1350,7 +1357,7 @@ mod v3 {
                     continue;
                 }
                 // SAFETY: `locate8` on the live index (b³ entries, asserted); `sigma8` on its
-                // bricks (every entry is negative or a brick below `brick_count`, by
+                // bricks (every entry is negative or a brick's first corner, by
                 // `LiveCells::new`); lanes `at..at + 8` of the `LANES`-lane arrays.
                 let stopped = unsafe {
                     let frozen = |at: usize| _mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32((finished >> at) as i32), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256());
@@ -1697,16 +1704,17 @@ mod v3 {
         (c, unsafe { _mm256_i32gather_epi32::<4>(live.as_ptr(), cell_at) })
     }
 
-    /// σ at fine-grid points `g` of cells `c` from their bricks (`brick ≥ 0`): the trilinear
-    /// sum of the brick's corners in `TextureCubes::sample`'s order (the same bits) — the
-    /// f16 values read two corners (x, x + 1) per 32-bit element where the cubes have them.
+    /// σ at fine-grid points `g` of cells `c` from their bricks (`first`: each brick's first
+    /// corner, as the live index holds it): the trilinear sum of the brick's corners in
+    /// `TextureCubes::sample`'s order (the same bits) — the f16 values read two corners
+    /// (x, x + 1) per 32-bit element where the cubes have them.
     ///
     /// # Safety
-    /// Every lane of `brick` is a brick of `density` (0 ≤ brick < bricks; `values` below 2³¹
-    /// entries); the CPU has x86-64-v3.
+    /// Every lane of `first` is the first corner of a brick of `density` (`values` below
+    /// 2³¹ entries); the CPU has x86-64-v3.
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    unsafe fn density8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3], c: [__m256; 3], brick: __m256i) -> __m256 {
+    unsafe fn density8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3], c: [__m256; 3], first: __m256i) -> __m256 {
         let r = density.brick as f32;
         let e = density.brick as i32 + 1;
         let zero = _mm256_setzero_ps();
@@ -1719,10 +1727,9 @@ mod v3 {
         let (fx, bx) = split(0);
         let (fy, by) = split(1);
         let (fz, bz) = split(2);
-        let start = _mm256_mullo_epi32(brick, _mm256_set1_epi32(density.brick_corners() as i32));
         // The corner's offset in its brick, in f32 (exact: below (r + 1)³ ≤ 33³).
         let ef = _mm256_set1_ps(e as f32);
-        let idx0 = _mm256_add_epi32(start, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx)));
+        let idx0 = _mm256_add_epi32(first, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx)));
         let one = _mm256_set1_ps(1.0);
         let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
         let mut acc = zero;
@@ -1911,7 +1918,7 @@ mod v4 {
     ///
     /// # Safety
     /// As [`v3::march_wave`]'s step: `cells` fits `density` (asserted by the caller), whose
-    /// live index entries are negative or bricks below `brick_count`; the CPU has AVX-512.
+    /// live index entries are negative or bricks' first corners; the CPU has AVX-512.
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
@@ -2005,10 +2012,11 @@ mod v4 {
     /// (the same corner order and operations, so the same bits).
     ///
     /// # Safety
-    /// Every lane of `brick` is a brick of `density` (`values` below 2³¹ entries).
+    /// Every lane of `first` is the first corner of a brick of `density` (`values` below
+    /// 2³¹ entries).
     #[inline]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    unsafe fn density16(density: &TextureCubes, cells: &LiveCells, g: [__m512; 3], c: [__m512; 3], brick: __m512i) -> __m512 {
+    unsafe fn density16(density: &TextureCubes, cells: &LiveCells, g: [__m512; 3], c: [__m512; 3], first: __m512i) -> __m512 {
         let r = density.brick as f32;
         let e = density.brick as i32 + 1;
         let zero = _mm512_setzero_ps();
@@ -2021,9 +2029,8 @@ mod v4 {
         let (fx, bx) = split(0);
         let (fy, by) = split(1);
         let (fz, bz) = split(2);
-        let start = _mm512_mullo_epi32(brick, _mm512_set1_epi32(density.brick_corners() as i32));
         let ef = _mm512_set1_ps(e as f32);
-        let idx0 = _mm512_add_epi32(start, _mm512_cvttps_epi32(_mm512_fmadd_ps(_mm512_fmadd_ps(bz, ef, by), ef, bx)));
+        let idx0 = _mm512_add_epi32(first, _mm512_cvttps_epi32(_mm512_fmadd_ps(_mm512_fmadd_ps(bz, ef, by), ef, bx)));
         let one = _mm512_set1_ps(1.0);
         let (hx, hy, hz) = (_mm512_sub_ps(one, fx), _mm512_sub_ps(one, fy), _mm512_sub_ps(one, fz));
         let mut acc = zero;
