@@ -575,6 +575,104 @@ struct CellRect {
     t_hi: f32,
 }
 
+/// What [`Footprints::new`] needs to project one block: the camera in object space (f64),
+/// the block size, and each corner's offset from the block's low corner, with the offsets'
+/// components along the camera's axes, so that a block's 8 corners are sums over arrays of 8
+/// (which vectorise).
+struct Projection {
+    camera: glam::DVec3,
+    axes: [glam::DVec3; 3],
+    min: glam::DVec3,
+    cell_size: glam::DVec3,
+    /// Corner offsets per object axis, and along the camera's x, y and z axes.
+    offset: [[f64; 8]; 3],
+    along: [[f64; 8]; 3],
+    /// fx, fy, cx, cy; the view's width and height in pixels.
+    focal: [f64; 2],
+    centre: [f64; 2],
+    size: [f64; 2],
+    t_shift: f64,
+    slack: f64,
+}
+
+impl Projection {
+    fn new(f: &RayFrame, live: &LiveCells, density: &TextureCubes, step: f32) -> Self {
+        use glam::DVec3;
+        let k = &f.intrinsics;
+        let axes = f.object_from_camera.map(|c| c.as_dvec3());
+        let t_shift = f.t_shift as f64;
+        let cell_size = (density.bounds.size() / density.grid as f32).as_dvec3() * live.block as f64;
+        let corner: [DVec3; 8] = std::array::from_fn(|c| DVec3::new((c & 1) as f64, (c >> 1 & 1) as f64, (c >> 2) as f64) * cell_size);
+        Self {
+            camera: f.origin_near_in_object.as_dvec3() + t_shift * axes[2],
+            axes,
+            min: density.bounds.min.as_dvec3(),
+            cell_size,
+            offset: [0, 1, 2].map(|a| corner.map(|o| o[a])),
+            along: axes.map(|axis| corner.map(|o| o.dot(axis))),
+            focal: [k.fx as f64, k.fy as f64],
+            centre: [k.cx as f64, k.cy as f64],
+            size: [k.width as f64, k.height as f64],
+            t_shift,
+            slack: 2.0 * step as f64 + 1e-5 * (1.0 + t_shift),
+        }
+    }
+
+    /// The rectangles of `blocks` that some pixel's ray meets; `Err` when one reaches behind
+    /// the camera. Compiled for AVX-512 too, where its corner loops run 8 wide.
+    fn rects(&self, blocks: &[UVec3]) -> Result<Vec<CellRect>, ()> {
+        #[cfg(target_arch = "x86_64")]
+        if crate::mlp::simd::level() == crate::mlp::simd::Level::Avx512 {
+            #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx2,fma")]
+            fn wide(p: &Projection, blocks: &[UVec3]) -> Result<Vec<CellRect>, ()> {
+                blocks.iter().filter_map(|b| p.rect(b).transpose()).collect()
+            }
+            #[allow(unsafe_code)]
+            // SAFETY: the CPU has AVX-512 F/VL/DQ, AVX2 and FMA (`Level::Avx512`); the body
+            // is safe code.
+            return unsafe { wide(self, blocks) };
+        }
+        blocks.iter().filter_map(|b| self.rect(b).transpose()).collect()
+    }
+
+    /// One block's rectangle: the pixels whose centres fall inside the hull of its corners'
+    /// projections (pixel i's ray goes through i here), with a margin of 1/16 pixel, far
+    /// above the rounding of the rays and their samples (~1e-4 pixel); `None` if no pixel's;
+    /// `Err` when it reaches behind the camera.
+    #[inline(always)]
+    fn rect(&self, block: &UVec3) -> Result<Option<CellRect>, ()> {
+        const MARGIN: f64 = 1.0 / 16.0;
+        let lo = self.min + block.as_dvec3() * self.cell_size;
+        let base = lo - self.camera;
+        let [bx, by, bz] = self.axes.map(|a| base.dot(a));
+        let (mut xs, mut ys, mut behind, mut far2) = ([0.0f64; 8], [0.0f64; 8], false, 0.0f64);
+        for c in 0..8 {
+            let v = [base.x + self.offset[0][c], base.y + self.offset[1][c], base.z + self.offset[2][c]];
+            let len2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+            far2 = far2.max(len2);
+            let z = -(bz + self.along[2][c]);
+            behind |= z <= 1e-9 * (1.0 + len2.sqrt());
+            let inv_z = 1.0 / z;
+            xs[c] = self.centre[0] + self.focal[0] * (bx + self.along[0][c]) * inv_z - 0.5;
+            ys[c] = self.centre[1] - self.focal[1] * (by + self.along[1][c]) * inv_z - 0.5;
+        }
+        if behind {
+            return Err(());
+        }
+        let (x_min, x_max) = xs.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+        let (y_min, y_max) = ys.iter().fold((f64::MAX, f64::MIN), |(a, b), &y| (a.min(y), b.max(y)));
+        let (x0, x1) = ((x_min - MARGIN).ceil().max(0.0), (x_max + MARGIN).floor().min(self.size[0] - 1.0));
+        let (y0, y1) = ((y_min - MARGIN).ceil().max(0.0), (y_max + MARGIN).floor().min(self.size[1] - 1.0));
+        if x0 > x1 || y0 > y1 {
+            return Ok(None);
+        }
+        // Nearest and farthest distance from the camera to the block.
+        let near = (self.camera.clamp(lo, lo + self.cell_size) - self.camera).length();
+        let (t_lo, t_hi) = (near - self.t_shift - self.slack, far2.sqrt() - self.t_shift + self.slack);
+        Ok(Some(CellRect { x0: x0 as u32, x1: x1 as u32, y0: y0 as u32, y1: y1 as u32, t_lo: t_lo as f32, t_hi: t_hi as f32 }))
+    }
+}
+
 /// Per pixel of a band, where along its ray live cells can be (`t_lo > t_hi`: nowhere).
 struct RayBounds {
     t_lo: Vec<f32>,
@@ -584,51 +682,12 @@ struct RayBounds {
 impl Footprints {
     /// `None` when some live cell reaches behind the camera (then every ray is marched whole).
     fn new(f: &RayFrame, live: &LiveCells, density: &TextureCubes, step: f32) -> Option<Self> {
-        use glam::DVec3;
-        let cells = &live.blocks;
-        let k = &f.intrinsics;
-        let [c0, c1, c2] = f.object_from_camera.map(|c| c.as_dvec3());
-        let t_shift = f.t_shift as f64;
-        let camera = f.origin_near_in_object.as_dvec3() + t_shift * c2;
-        let cell_size = (density.bounds.size() / density.grid as f32).as_dvec3() * live.block as f64;
-        let min = density.bounds.min.as_dvec3();
-        let slack = 2.0 * step as f64 + 1e-5 * (1.0 + t_shift);
-        let (w, h) = (k.width as f64, k.height as f64);
-        // One cell's rectangle; `Err` when it reaches behind the camera.
-        let rect = |cell: &UVec3| -> Result<Option<CellRect>, ()> {
-            let lo = min + cell.as_dvec3() * cell_size;
-            let hi = lo + cell_size;
-            let (mut x_min, mut x_max, mut y_min, mut y_max) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-            let mut far = 0.0f64;
-            for corner in 0..8 {
-                let p = DVec3::new(if corner & 1 == 0 { lo.x } else { hi.x }, if corner & 2 == 0 { lo.y } else { hi.y }, if corner & 4 == 0 { lo.z } else { hi.z });
-                let v = p - camera;
-                far = far.max(v.length());
-                let z = -v.dot(c2);
-                if z <= 1e-9 * (1.0 + v.length()) {
-                    return Err(());
-                }
-                let x = k.cx as f64 + k.fx as f64 * v.dot(c0) / z - 0.5;
-                let y = k.cy as f64 - k.fy as f64 * v.dot(c1) / z - 0.5;
-                (x_min, x_max, y_min, y_max) = (x_min.min(x), x_max.max(x), y_min.min(y), y_max.max(y));
-            }
-            // The pixels whose centres fall inside the hull of the corners' projections (pixel
-            // i's ray goes through i here), with a margin of 1/16 pixel, far above the rounding
-            // of the rays and their samples (~1e-4 pixel).
-            const MARGIN: f64 = 1.0 / 16.0;
-            let (x0, x1) = ((x_min - MARGIN).ceil().max(0.0), (x_max + MARGIN).floor().min(w - 1.0));
-            let (y0, y1) = ((y_min - MARGIN).ceil().max(0.0), (y_max + MARGIN).floor().min(h - 1.0));
-            if x0 > x1 || y0 > y1 {
-                return Ok(None);
-            }
-            let near = (camera.clamp(lo, hi) - camera).length();
-            Ok(Some(CellRect { x0: x0 as u32, x1: x1 as u32, y0: y0 as u32, y1: y1 as u32, t_lo: (near - t_shift - slack) as f32, t_hi: (far - t_shift + slack) as f32 }))
-        };
+        let projection = Projection::new(f, live, density, step);
         // In parallel: a frame has one view, and this runs before its bands.
-        let chunks: Vec<Vec<CellRect>> = cells.par_chunks(1024).map(|chunk| chunk.iter().filter_map(|c| rect(c).transpose()).collect::<Result<_, ()>>()).collect::<Result<_, ()>>().ok()?;
+        let chunks: Vec<Vec<CellRect>> = live.blocks.par_chunks(1024).map(|chunk| projection.rects(chunk)).collect::<Result<_, ()>>().ok()?;
         let rects: Vec<CellRect> = chunks.concat();
         let bin_rows = 16;
-        let mut bins = vec![Vec::new(); (k.height as usize).div_ceil(bin_rows as usize)];
+        let mut bins = vec![Vec::new(); (f.intrinsics.height as usize).div_ceil(bin_rows as usize)];
         for (i, r) in rects.iter().enumerate() {
             for bin in &mut bins[(r.y0 / bin_rows) as usize..=(r.y1 / bin_rows) as usize] {
                 bin.push(i as u32);
