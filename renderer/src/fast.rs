@@ -200,8 +200,8 @@ impl DiffuseBytes {
 const FOOTPRINT_BLOCKS: usize = 32 * 1024;
 
 /// The index grid with only live cells: bricks that have some non-zero density (the others'
-/// samples have α = 0 and change nothing). Every entry is negative or a brick the density
-/// holds.
+/// samples have α = 0 and change nothing). Every entry is negative or the first corner of a
+/// brick the density holds.
 struct LiveCells {
     /// `b³`, x fastest: the brick's first corner (brick × (r + 1)³, so that the march adds
     /// no multiply between reading the entry and reading the corners), or −1 − (the dead
@@ -587,7 +587,7 @@ struct Projection {
     /// Corner offsets per object axis, and along the camera's x, y and z axes.
     offset: [[f64; 8]; 3],
     along: [[f64; 8]; 3],
-    /// fx, fy, cx, cy; the view's width and height in pixels.
+    /// Focal lengths and principal point (pixels), and the view's width and height.
     focal: [f64; 2],
     centre: [f64; 2],
     size: [f64; 2],
