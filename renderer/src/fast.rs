@@ -216,6 +216,9 @@ struct LiveCells {
     /// Whether the footprint prepass runs (off only in the test that checks it changes no
     /// frame).
     footprints: bool,
+    /// Whether the march computes cell numbers in f32 (exact while `b³ ≤ 2²⁴`, and shorter
+    /// than integer multiplies); larger grids, and a test, take the integer path.
+    cell_numbers_in_f32: bool,
     /// The density values as the f16 bits they are stored as (`None` if some value is not
     /// an f16, as in cubes built in memory): half the bytes, and the two corners of a
     /// trilinear sample that differ in x are one 32-bit read.
@@ -223,7 +226,7 @@ struct LiveCells {
 }
 
 /// Largest index grid whose cell numbers (below `b³ ≤ 2²⁴`) the march computes in f32.
-const EXACT_GRID: i32 = 256;
+const EXACT_GRID: u32 = 256;
 
 /// Largest dead radius R the wavefront march jumps across: a box of R + 1 index cells per
 /// side from the sample's cell towards where its ray heads (R in 3 bits per octant).
@@ -343,7 +346,8 @@ impl LiveCells {
             .then(|| d.values.iter().map(|&v| half::f16::from_f32(v)).collect::<Vec<_>>())
             .filter(|h| h.iter().zip(&d.values).all(|(h, v)| h.to_f32().to_bits() == v.to_bits()))
             .map(|h| h.into_iter().map(half::f16::to_bits).collect());
-        Self { index, blocks: cells.clone(), block: 1, footprints: true, cells, values_f16 }.with_blocks_at_most(FOOTPRINT_BLOCKS)
+        let cell_numbers_in_f32 = d.grid <= EXACT_GRID;
+        Self { index, blocks: cells.clone(), block: 1, footprints: true, cell_numbers_in_f32, cells, values_f16 }.with_blocks_at_most(FOOTPRINT_BLOCKS)
     }
 
     /// Merges the live cells into blocks for the footprints, doubling the block's side (up to
@@ -1004,13 +1008,15 @@ impl FastPrepared {
         let mut sigma = [0.0; BATCH];
         let mut e = [1.0; BATCH];
         let (b, r) = (density.grid as f32, density.brick as f32);
+        // Live entries hold a brick's first corner; `sample_in_brick` takes its number.
+        let corners = density.brick_corners() as u32;
         for l in 0..BATCH {
             let t = t0 + ((k0 + l as i32) as f32 + 0.5) * step;
             let g = density.to_fine(o + t * d);
             let cell = (g / r).as_uvec3().as_vec3().min(Vec3::splat(b - 1.0));
             let first = self.live.index[density.cell_index(cell.as_uvec3())];
             if first >= 0 {
-                sigma[l] = density.sample_in_brick::<1>(first as usize / density.brick_corners(), cell, g)[0];
+                sigma[l] = density.sample_in_brick::<1>((first as u32 / corners) as usize, cell, g)[0];
                 e[l] = exp_neg(sigma[l] * step);
             }
         }
@@ -1068,7 +1074,6 @@ mod v3 {
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     pub(super) fn sigmas(density: &TextureCubes, cells: &LiveCells, k0: i32, n: usize, o: Vec3, d: Vec3, t0: f32, step: f32) -> ([f32; BATCH], [f32; BATCH], u32) {
-        let live = &cells.index;
         cells.assert_fits(density);
         let mut sigma = [0.0f32; BATCH];
         let mut out = [1.0f32; BATCH];
@@ -1084,7 +1089,7 @@ mod v3 {
                 // t = t0 + (k + ½)·δ, p = o + t·d, g = (p − min) · (res / size).
                 let t = _mm256_add_ps(_mm256_set1_ps(t0), _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
                 let g = fine8(density, [_mm256_set1_ps(o.x), _mm256_set1_ps(o.y), _mm256_set1_ps(o.z)], [_mm256_set1_ps(d.x), _mm256_set1_ps(d.y), _mm256_set1_ps(d.z)], t);
-                let (c, brick) = cells8(density, live, g);
+                let (c, brick) = cells8(density, cells, g);
                 let is_live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
                 if _mm256_movemask_epi8(is_live) == 0 {
                     continue;
@@ -1356,7 +1361,6 @@ mod v3 {
     ) {
         let density = &p.asset.density;
         let cells = &p.live;
-        let live_index = &cells.index;
         cells.assert_fits(density);
         let r = density.brick as f32;
         let mut wave = Wave::default();
@@ -1425,10 +1429,10 @@ mod v3 {
                     // then every group's corner gathers and exps, then the rules (as a loop
                     // over the groups it ran 5% slower).
                     let at = [
-                        locate8(density, live_index, &wave, 0, step),
-                        locate8(density, live_index, &wave, 8, step),
-                        locate8(density, live_index, &wave, 16, step),
-                        locate8(density, live_index, &wave, 24, step),
+                        locate8(density, cells, &wave, 0, step),
+                        locate8(density, cells, &wave, 8, step),
+                        locate8(density, cells, &wave, 16, step),
+                        locate8(density, cells, &wave, 24, step),
                     ];
                     let sampled = [
                         sigma8(density, cells, &at[0], frozen[0], step),
@@ -1594,7 +1598,7 @@ mod v3 {
     /// As [`cells8`]; `at + 8 ≤ LANES`.
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    unsafe fn locate8(density: &TextureCubes, live: &[i32], wave: &Wave, at: usize, step: f32) -> Located {
+    unsafe fn locate8(density: &TextureCubes, cells: &LiveCells, wave: &Wave, at: usize, step: f32) -> Located {
         // SAFETY: 8-lane loads at `at ≤ LANES − 8`; `cells8` as the caller guarantees.
         unsafe {
             let ld = |a: &[f32; LANES]| _mm256_loadu_ps(a.as_ptr().add(at));
@@ -1602,7 +1606,7 @@ mod v3 {
             let t0 = ld(&wave.t0);
             let t = _mm256_add_ps(t0, _mm256_mul_ps(_mm256_add_ps(_mm256_cvtepi32_ps(k), _mm256_set1_ps(0.5)), _mm256_set1_ps(step)));
             let g = fine8(density, [ld(&wave.o[0]), ld(&wave.o[1]), ld(&wave.o[2])], [ld(&wave.d[0]), ld(&wave.d[1]), ld(&wave.d[2])], t);
-            let (c, brick) = cells8(density, live, g);
+            let (c, brick) = cells8(density, cells, g);
             Located { k, t0, t, g, c, brick }
         }
     }
@@ -1742,16 +1746,16 @@ mod v3 {
     /// `TextureCubes::sample` — and their live bricks (negative where the cell is not live).
     ///
     /// # Safety
-    /// `live` has `grid³` entries; the CPU has x86-64-v3.
+    /// `cells.index` has `grid³` entries; the CPU has x86-64-v3.
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    unsafe fn cells8(density: &TextureCubes, live: &[i32], g: [__m256; 3]) -> ([__m256; 3], __m256i) {
+    unsafe fn cells8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3]) -> ([__m256; 3], __m256i) {
         let (b, r) = (density.grid as i32, density.brick as f32);
         // (g · 1/r is g / r to the bit when r is a power of two.)
         let over_r = |g: __m256| if density.brick.is_power_of_two() { _mm256_mul_ps(g, _mm256_set1_ps(1.0 / r)) } else { _mm256_div_ps(g, _mm256_set1_ps(r)) };
         let cell = |g: __m256| _mm256_min_ps(_mm256_max_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(over_r(g))), _mm256_setzero_ps()), _mm256_set1_ps((b - 1) as f32));
         let c = [cell(g[0]), cell(g[1]), cell(g[2])];
-        let cell_at = if b <= EXACT_GRID {
+        let cell_at = if cells.cell_numbers_in_f32 {
             // In f32 (exact: integers below 2²⁴), shorter than two integer multiplies.
             let bf = _mm256_set1_ps(b as f32);
             _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(c[2], bf, c[1]), bf, c[0]))
@@ -1759,8 +1763,8 @@ mod v3 {
             let bi = _mm256_set1_epi32(b);
             _mm256_add_epi32(_mm256_cvttps_epi32(c[0]), _mm256_mullo_epi32(bi, _mm256_add_epi32(_mm256_cvttps_epi32(c[1]), _mm256_mullo_epi32(bi, _mm256_cvttps_epi32(c[2])))))
         };
-        // SAFETY: each coordinate is clamped to 0..b, so `cell_at < b³ = live.len()`.
-        (c, unsafe { _mm256_i32gather_epi32::<4>(live.as_ptr(), cell_at) })
+        // SAFETY: each coordinate is clamped to 0..b, so `cell_at < b³ = cells.index.len()`.
+        (c, unsafe { _mm256_i32gather_epi32::<4>(cells.index.as_ptr(), cell_at) })
     }
 
     /// σ at fine-grid points `g` of cells `c` from their bricks (`first`: each brick's first
@@ -1995,7 +1999,7 @@ mod v4 {
         let frozen = [finished as u16, (finished >> 16) as u16];
         // SAFETY: as the caller guarantees; lanes `at..at + 16` of `LANES`-lane arrays.
         unsafe {
-            let at = [locate16(density, &cells.index, wave, 0, step), locate16(density, &cells.index, wave, 16, step)];
+            let at = [locate16(density, cells, wave, 0, step), locate16(density, cells, wave, 16, step)];
             let sampled = [sigma16(density, cells, &at[0], frozen[0], step), sigma16(density, cells, &at[1], frozen[1], step)];
             rule16::<MULTI>(rule, wave, runs, segments, 0, &at[0], sampled[0], frozen[0]) | rule16::<MULTI>(rule, wave, runs, segments, 16, &at[1], sampled[1], frozen[1])
         }
@@ -2014,10 +2018,10 @@ mod v4 {
     /// The next samples of lanes `at..at + 16` (as `v3::locate8`).
     ///
     /// # Safety
-    /// `live` has `grid³` entries; `at + 16 ≤ LANES`.
+    /// `cells.index` has `grid³` entries; `at + 16 ≤ LANES`.
     #[inline]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    unsafe fn locate16(density: &TextureCubes, live: &[i32], wave: &Wave, at: usize, step: f32) -> Located {
+    unsafe fn locate16(density: &TextureCubes, cells: &LiveCells, wave: &Wave, at: usize, step: f32) -> Located {
         // SAFETY: 16-lane loads at `at ≤ LANES − 16`; the gather as `cells16`.
         unsafe {
             let ld = |a: &[f32; LANES]| _mm512_loadu_ps(a.as_ptr().add(at));
@@ -2038,15 +2042,15 @@ mod v4 {
             let cell = |g: __m512| _mm512_min_ps(_mm512_max_ps(_mm512_cvtepi32_ps(_mm512_cvttps_epi32(over_r(g))), _mm512_setzero_ps()), _mm512_set1_ps((b - 1) as f32));
             let c = [cell(g[0]), cell(g[1]), cell(g[2])];
             // As `v3::cells8`.
-            let cell_at = if b <= EXACT_GRID {
+            let cell_at = if cells.cell_numbers_in_f32 {
                 let bf = _mm512_set1_ps(b as f32);
                 _mm512_cvttps_epi32(_mm512_fmadd_ps(_mm512_fmadd_ps(c[2], bf, c[1]), bf, c[0]))
             } else {
                 let bi = _mm512_set1_epi32(b);
                 _mm512_add_epi32(_mm512_cvttps_epi32(c[0]), _mm512_mullo_epi32(bi, _mm512_add_epi32(_mm512_cvttps_epi32(c[1]), _mm512_mullo_epi32(bi, _mm512_cvttps_epi32(c[2])))))
             };
-            // Each coordinate is clamped to 0..b, so `cell_at < b³ = live.len()`.
-            let brick = _mm512_i32gather_epi32::<4>(cell_at, live.as_ptr());
+            // Each coordinate is clamped to 0..b, so `cell_at < b³ = cells.index.len()`.
+            let brick = _mm512_i32gather_epi32::<4>(cell_at, cells.index.as_ptr());
             Located { k, t0, t, g, c, brick }
         }
     }
@@ -2466,6 +2470,9 @@ mod tests {
             let merged = FastPrepared { live: LiveCells::new(&asset.density).with_blocks_at_most(asset.density.brick_count() / 20), ..prepare(March::Avx2) };
             assert!(merged.live.block >= 2, "{} blocks of {}", merged.live.blocks.len(), merged.live.block);
             let whole = FastPrepared { live: LiveCells { footprints: false, ..LiveCells::new(&asset.density) }, ..prepare(March::Avx2) };
+            // Cell numbers by integer multiplies (the path of grids above 256³), both marches.
+            let integer = |march| FastPrepared { live: LiveCells { cell_numbers_in_f32: false, ..LiveCells::new(&asset.density) }, ..prepare(march) };
+            let integer = [Some(integer(March::Avx2)), wide_lanes().then(|| integer(March::Avx512))];
             for settings in [
                 RenderSettings { hit_tau: Some(1.0), ..Default::default() },
                 RenderSettings::default(),
@@ -2482,7 +2489,12 @@ mod tests {
                 if let Some(d) = &d {
                     assert_eq!((a.stats.hits, a.stats.samples, a.stats.queries), (d.stats.hits, d.stats.samples, d.stats.queries), "{settings:?}: AVX-512 march");
                 }
-                let wide_frames = d.iter().flat_map(|d| a.frames.iter().zip(&d.frames));
+                let integer: Vec<_> = integer.iter().flatten().map(|p| p.render(&views, &settings).unwrap()).collect();
+                for i in &integer {
+                    assert_eq!((a.stats.hits, a.stats.samples, a.stats.queries), (i.stats.hits, i.stats.samples, i.stats.queries), "{settings:?}: integer cell numbers");
+                }
+                let integer_frames = integer.iter().flat_map(|i| a.frames.iter().zip(&i.frames));
+                let wide_frames = d.iter().flat_map(|d| a.frames.iter().zip(&d.frames)).chain(integer_frames);
                 for (fa, fb) in a.frames.iter().zip(&b.frames).chain(a.frames.iter().zip(&c.frames)).chain(a.frames.iter().zip(&e.frames)).chain(wide_frames) {
                     assert!(fa.rgba == fb.rgba, "{settings:?}: the colours differ");
                     assert!(fa.depth.iter().zip(&fb.depth).all(|(x, y)| x.to_bits() == y.to_bits()), "{settings:?}: the depths differ");
