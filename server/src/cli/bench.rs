@@ -125,6 +125,11 @@ pub enum BenchCommand {
         /// this CPU has.
         #[arg(long, value_delimiter = ',')]
         marches: Vec<nephele_renderer::fast::March>,
+        /// The `cpu` backend with each of these network kernels, frames alternating (with
+        /// --marches: every pair): f32, int8 (the hidden layer in 8 bits, AVX-512 VNNI; the
+        /// PSNR column gives its cost). Default: int8 where the CPU has it.
+        #[arg(long, value_delimiter = ',')]
+        networks: Vec<nephele_renderer::fast::Network>,
         #[command(flatten)]
         knobs: super::RenderKnobs,
     },
@@ -192,7 +197,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
             }
             Ok(())
         }
-        BenchCommand::Render { asset, sizes, backends, runs, distance, batch, marches, knobs } => {
+        BenchCommand::Render { asset, sizes, backends, runs, distance, batch, marches, networks, knobs } => {
             // With knobs set, the default rule is timed beside them (frames alternating), and
             // their frame's PSNR against its frame is printed.
             let settings = knobs.settings()?;
@@ -201,15 +206,19 @@ pub fn run(what: BenchCommand) -> Result<()> {
             let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
             let mut rows = Vec::new();
             let mut batches = Vec::new();
-            if !marches.is_empty() && !backends.contains(&BackendChoice::Cpu) {
-                anyhow::bail!("--marches compares the `cpu` backend's marches: add cpu to --backends");
+            if !(marches.is_empty() && networks.is_empty()) && !backends.contains(&BackendChoice::Cpu) {
+                anyhow::bail!("--marches and --networks compare the `cpu` backend's variants: add cpu to --backends");
             }
             for b in backends {
                 let backend = make_backend(b)?;
                 eprintln!("benchmarking {} ...", backend.name());
-                let variants = if b == BackendChoice::Cpu && !marches.is_empty() {
+                let variants = if b == BackendChoice::Cpu && !(marches.is_empty() && networks.is_empty()) {
+                    use nephele_renderer::fast::{March, Network};
                     let fast = nephele_renderer::FastCpuBackend;
-                    marches.iter().map(|&m| Ok((format!("cpu, {} march", m.name()), fast.prepare_with_march(a.clone(), m)?))).collect::<Result<Vec<_>>>()?
+                    let ms = if marches.is_empty() { vec![March::detect()] } else { marches.clone() };
+                    let ns = if networks.is_empty() { vec![Network::detect()] } else { networks.clone() };
+                    let pairs: Vec<(March, Network)> = ms.iter().flat_map(|&m| ns.iter().map(move |&n| (m, n))).collect();
+                    pairs.iter().map(|&(m, n)| Ok((format!("cpu, {} march, {} network", m.name(), n.name()), fast.prepare_with(a.clone(), m, n)?))).collect::<Result<Vec<_>>>()?
                 } else {
                     vec![(backend.name(), backend.prepare(a.clone())?)]
                 };
@@ -220,7 +229,11 @@ pub fn run(what: BenchCommand) -> Result<()> {
             }
             let peak = nephele_renderer::mlp::peak_fma_gflops();
             // The march the plain `cpu` rows used.
-            let march = if rows.iter().any(|r| r.backend == "cpu") { format!("\nfast CPU march: {}", nephele_renderer::fast::March::detect().describe()) } else { String::new() };
+            let march = if rows.iter().any(|r| r.backend == "cpu") {
+                format!("\nfast CPU march: {}; network: {}", nephele_renderer::fast::March::detect().describe(), nephele_renderer::fast::Network::detect().describe())
+            } else {
+                String::new()
+            };
             match peak {
                 Some((p, threads, level)) => println!("asset: {asset}{march}\npeak FMA rate measured now: {p:.0} GFLOP/s on {threads} threads ({level})\n\n{}", format_table_with_peak(&rows, Some(p))),
                 None => println!("asset: {asset}\n\n{}", format_table(&rows)),
@@ -437,7 +450,7 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
     let psnr = rules || rows.iter().any(|r| r.psnr_vs_first.is_some());
     let _ = write!(out, "| backend |{} size | ray-march ms | network ms | total ms | Mrays/s | hit fraction | samples/ray | queries/hit |", if rules { " rule |" } else { "" });
     let _ = write!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor |" } else { "" });
-    let _ = writeln!(out, "{}", if rules { " PSNR vs default rule dB |" } else if psnr { " PSNR vs first march dB |" } else { "" });
+    let _ = writeln!(out, "{}", if rules { " PSNR vs default rule dB |" } else if psnr { " PSNR vs first variant dB |" } else { "" });
     let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" }, if psnr { "---:|" } else { "" });
     for r in rows {
         let hits = (r.hit_fraction * (r.width as f64 * r.height as f64)).max(1.0);
