@@ -100,6 +100,10 @@ pub enum BenchCommand {
         /// Render-time target of the auto scale, ms.
         #[arg(long, default_value_t = 30.0)]
         frame_budget_ms: f64,
+        /// Share of the pose period a frame may wait for a pose that is due (`serve
+        /// --pose-latch`; 0: never).
+        #[arg(long, default_value_t = crate::master::core::POSE_LATCH)]
+        pose_latch: f64,
     },
     /// Ray-march / network / total ms, rays/s and hit fraction per backend and size.
     Render {
@@ -154,8 +158,8 @@ pub enum BenchCommand {
 /// Runs one `nephele bench` subcommand.
 pub fn run(what: BenchCommand) -> Result<()> {
     match what {
-        BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms } => {
-            stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms)
+        BenchCommand::Stream { asset, sizes, trace, backend, fps, render_scales, frame_budget_ms, pose_latch } => {
+            stream(&asset, &sizes, &trace, backend, fps, &render_scales, frame_budget_ms, pose_latch)
         }
         BenchCommand::Tradeoff { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu, taus, max_hits } => {
             use super::tradeoff::{TradeoffOptions, format_report, run};
@@ -256,7 +260,8 @@ pub fn run(what: BenchCommand) -> Result<()> {
     }
 }
 
-fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u32, scales: &[String], budget_ms: f64) -> Result<()> {
+#[allow(clippy::too_many_arguments)]
+fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u32, scales: &[String], budget_ms: f64, pose_latch: f64) -> Result<()> {
     let trace = load_trace(trace)?;
     let sizes: Vec<(u32, u32)> = sizes.split(',').map(parse_size).collect::<Result<_>>()?;
     let scales: Vec<(String, RenderScale)> =
@@ -269,7 +274,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
     for (label, scale) in &scales {
         for &(width, height) in &sizes {
             eprintln!("streaming {} at {width}x{height}, render scale {label} ...", trace.name);
-            let cfg = MasterConfig::loopback("bench", CoreConfig { render_scale: *scale, ..Default::default() });
+            let cfg = MasterConfig::loopback("bench", CoreConfig { render_scale: *scale, pose_latch, ..Default::default() });
             let catalog = Arc::clone(&catalog);
             let report = rt.block_on(async {
                 let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
@@ -287,7 +292,7 @@ fn stream(asset: &str, sizes: &str, trace: &str, backend: BackendChoice, fps: u3
             reports.push((label.clone(), report));
         }
     }
-    println!("asset {asset}, backend {}, trace {} ({} poses every {} ms), target {fps} fps, auto budget {budget_ms} ms\n", backend.name(), trace.name, trace.poses.len(), trace.period_ms);
+    println!("asset {asset}, backend {}, trace {} ({} poses every {} ms), target {fps} fps, auto budget {budget_ms} ms, pose latch {pose_latch}\n", backend.name(), trace.name, trace.poses.len(), trace.period_ms);
     println!("Per stage, p50 / p99 ms (master stages from frame info; end to end on the client clock):\n");
     println!("| size | scale | queue | render | RGB→I420 | encode | RTP send | pose→frame info | pose→decoded |");
     println!("|---|---|---:|---:|---:|---:|---:|---:|---:|");

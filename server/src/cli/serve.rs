@@ -59,6 +59,10 @@ pub struct MasterOptions {
     /// §6.2.1); `false` renders each user's frame as its own task.
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub batching: bool,
+    /// A frame whose pose is nearly a pose period old may wait up to this share of the
+    /// period for the next pose, so it shows a fresh one (0: never waits; at most 0.5).
+    #[arg(long, default_value_t = crate::master::core::POSE_LATCH)]
+    pub pose_latch: f64,
     /// `load`: refuse joins while a user starves or when the measured farm could not serve
     /// the newcomer at the lowest scale (NEPHELE Algorithm 1); `open`: admit up to
     /// --capacity whatever the load (for benchmarks of overload).
@@ -131,7 +135,7 @@ impl MasterOptions {
             name: name.into(),
             token: self.master_token.clone(),
             rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
-            core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching, admission: self.admission, ..Default::default() },
+            core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching, admission: self.admission, pose_latch: self.pose_latch, ..Default::default() },
             workers: self.workers,
             compose: self.compose,
             bits_per_pixel: self.bits_per_pixel,

@@ -105,7 +105,13 @@ pub struct CoreConfig {
     pub admission: Admission,
     pub connect_timeout: Duration,
     pub heartbeat_every: Duration,
+    /// Share of the pose period a frame may wait for a pose that is due
+    /// ([`Session::with_pose_latch`]; 0: never).
+    pub pose_latch: f64,
 }
+
+/// Default of [`CoreConfig::pose_latch`].
+pub const POSE_LATCH: f64 = 0.25;
 
 impl Default for CoreConfig {
     fn default() -> Self {
@@ -116,6 +122,7 @@ impl Default for CoreConfig {
             admission: Admission::Load,
             connect_timeout: CONNECT_TIMEOUT,
             heartbeat_every: HEARTBEAT_EVERY,
+            pose_latch: POSE_LATCH,
         }
     }
 }
@@ -441,7 +448,7 @@ impl MasterCore {
             if !u.connected {
                 t = t.min(u.joined_at + self.cfg.connect_timeout);
             } else if worker_free
-                && let Some(w) = u.session.next_wakeup().filter(|w| *w > self.now)
+                && let Some(w) = u.session.next_wakeup(self.now).filter(|w| *w > self.now)
             {
                 t = t.min(w);
             }
@@ -473,7 +480,7 @@ impl MasterCore {
                         Mode::Ar => background_of(Mode::Ar),
                         _ => self.scenes.get(&req.scene).map_or(background_of(req.mode), |s| s.background),
                     },
-                    session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)).with_layout(self.layout(&req)),
+                    session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)).with_layout(self.layout(&req)).with_pose_latch(self.cfg.pose_latch),
                     clock: UserClock::new(req.fps, now),
                     joined_at: now,
                     connected: false,
@@ -827,7 +834,9 @@ impl MasterCore {
                 }
             })
             .collect();
-        if candidates.is_empty() {
+        // A round of users who would all rather wait for their next pose waits (the pose
+        // latch); one who would not starts it, and the others come along.
+        if candidates.iter().all(|c| self.users[&c.session].session.latched(now)) {
             return false;
         }
         sort_candidates(&mut candidates);

@@ -17,7 +17,13 @@
 //!   that users whose slots fall close together share a render round;
 //! - the first frame is an IDR; PLI/FIR ask for another (at most one per 250 ms);
 //! - with dynamic resolution, a camera at rest for [`REFINE_AFTER`] gets one full-size
-//!   frame (sent as an IDR), then that frame is reused while the camera stays put.
+//!   frame (sent as an IDR), then that frame is reused while the camera stays put;
+//! - pose latch ([`Session::with_pose_latch`]): when the waiting pose is nearly a pose
+//!   period old, the next one is due within a share of a period: the frame would rather
+//!   wait for it (until that share past its due time), so that it shows a pose that is fresh
+//!   instead of one a period old ([`Session::latched`]; the core waits only when no other
+//!   user starts a round that the frame could share). The period is learnt from the poses'
+//!   arrivals.
 
 use std::{
     sync::Arc,
@@ -111,7 +117,17 @@ pub struct Session {
     last_scale: f32,
     /// When the camera (or anchor) last changed.
     still_since: Option<Instant>,
+    /// Share of the pose period a frame may wait for the next pose (0: never waits).
+    pose_latch: f64,
+    /// The client's pose period (moving average of the accepted poses' spacing), and when
+    /// the last one arrived.
+    pose_period: Option<Duration>,
+    last_pose_at: Option<Instant>,
 }
+
+/// Pose spacings outside this range do not teach the session the pose period (a pause, or
+/// a burst).
+const POSE_PERIOD_RANGE: std::ops::RangeInclusive<Duration> = Duration::from_millis(2)..=Duration::from_millis(250);
 
 impl Session {
     /// A session at a fixed render scale (no refinement at rest).
@@ -144,7 +160,39 @@ impl Session {
             epoch,
             last_scale: f32::NAN,
             still_since: None,
+            pose_latch: 0.0,
+            pose_period: None,
+            last_pose_at: None,
         }
+    }
+
+    /// Lets a frame wait up to `share` of the pose period for a pose that is due (see the
+    /// module notes); 0 never waits.
+    pub fn with_pose_latch(mut self, share: f64) -> Self {
+        self.pose_latch = if share.is_finite() { share.clamp(0.0, 0.5) } else { 0.0 };
+        self
+    }
+
+    /// The pose period learnt so far.
+    pub fn pose_period(&self) -> Option<Duration> {
+        self.pose_period
+    }
+
+    /// When the frame would wait for the next pose: `[due − share, due + share)` of a
+    /// period, `due` a period after the waiting pose arrived.
+    fn latch_window(&self) -> Option<(Instant, Instant)> {
+        let (period, pose) = (self.pose_period?, self.pending.as_ref()?);
+        if self.pose_latch <= 0.0 || self.idr_wanted {
+            return None;
+        }
+        let (due, share) = (pose.received_at + period, period.mul_f64(self.pose_latch));
+        Some((due - share, due + share))
+    }
+
+    /// A frame would rather wait for the pose that is due: the core starts no round for
+    /// this session alone, but takes it along in a round that others start.
+    pub fn latched(&self, now: Instant) -> bool {
+        self.latch_window().is_some_and(|(from, to)| (from..to).contains(&now))
     }
 
     /// Lays the frame out as `layout` (a quilt; the default is the views of each pose).
@@ -178,6 +226,10 @@ impl Session {
         }
         self.newest_seq = Some(msg.seq);
         self.counters.poses_accepted += 1;
+        if let Some(spacing) = self.last_pose_at.map(|t| now.saturating_duration_since(t)).filter(|d| POSE_PERIOD_RANGE.contains(d)) {
+            self.pose_period = Some(self.pose_period.map_or(spacing, |p| p.mul_f64(0.875) + spacing.mul_f64(0.125)));
+        }
+        self.last_pose_at = Some(now);
         if self.pending.is_some() {
             self.counters.poses_superseded += 1;
         }
@@ -310,12 +362,20 @@ impl Session {
         }
     }
 
-    /// When the core should call [`Self::poll_frame`] again, if a frame is waiting for its slot.
-    pub fn next_wakeup(&self) -> Option<Instant> {
+    /// When the core should call [`Self::poll_frame`] again (asked at `now`), if a frame is
+    /// waiting for its slot or for the pose latch to close.
+    pub fn next_wakeup(&self, now: Instant) -> Option<Instant> {
         if !self.can_start() || !self.wants_frame() {
             return None;
         }
-        self.next_slot.map(|t| t.checked_sub(self.frame_period.mul_f64(EARLY_START)).unwrap_or(t))
+        let slot = self.next_slot.map(|t| t.checked_sub(self.frame_period.mul_f64(EARLY_START)).unwrap_or(t));
+        // A frame that could start inside the latch window waits until the window closes
+        // (a pose arriving first wakes the core anyway).
+        let earliest = slot.map_or(now, |t| t.max(now));
+        match self.latch_window() {
+            Some((from, to)) if (from..to).contains(&earliest) => Some(to),
+            _ => slot,
+        }
     }
 
     fn repeat_pose(&self, now: Instant) -> Option<PendingPose> {
@@ -356,12 +416,64 @@ mod tests {
         s.frame_done(frame, times)
     }
 
+    /// Poses every 20 ms, frames rendering for 26: a frame that would start on a pose 17 ms
+    /// old waits for the one due (latch 0.25: from 15 to 25 ms after the old pose), and
+    /// starts on it when it comes; if it does not come, the frame starts when the window
+    /// closes. Pauses (over 250 ms) teach no period; without a latch nothing waits.
+    #[test]
+    fn a_frame_waits_for_a_pose_that_is_due() {
+        let t0 = Instant::now();
+        let mut s = Session::new(W, H, 50).with_pose_latch(0.25);
+        for k in 0..5u32 {
+            s.on_pose(&pose(k + 1, f64::from(k)), ms(t0, 20 * u64::from(k))).unwrap();
+        }
+        assert_eq!(s.pose_period(), Some(Duration::from_millis(20)));
+        // The first frame (an IDR) never waits.
+        let first = s.poll_frame(ms(t0, 80), 1.0).unwrap();
+        assert!(first.idr && !s.latched(ms(t0, 80)));
+        s.on_pose(&pose(6, 5.0), ms(t0, 100)).unwrap();
+        finish(&mut s, FrameTimes::default()).unwrap();
+        // At 106 the pose of 100 is 6 ms old: no wait.
+        assert!(!s.latched(ms(t0, 106)) && s.ready(ms(t0, 106)));
+        let job = s.poll_frame(ms(t0, 106), 1.0).unwrap();
+        assert_eq!(job.pose.seq, 6);
+        s.on_pose(&pose(7, 6.0), ms(t0, 120)).unwrap();
+        finish(&mut s, FrameTimes::default()).unwrap();
+        // At 137 the pose of 120 is 17 ms old and the next is due at 140: latched until 145.
+        assert!(s.ready(ms(t0, 137)) && s.latched(ms(t0, 137)));
+        assert_eq!(s.next_wakeup(ms(t0, 137)), Some(ms(t0, 145)));
+        s.on_pose(&pose(8, 7.0), ms(t0, 140)).unwrap();
+        assert!(!s.latched(ms(t0, 140)));
+        let job = s.poll_frame(ms(t0, 140), 1.0).unwrap();
+        assert_eq!((job.pose.seq, job.started_at.duration_since(job.pose.received_at)), (8, Duration::ZERO));
+        // The pose due at 180 is late: the window closes at 185 and the frame starts then.
+        s.on_pose(&pose(9, 8.0), ms(t0, 160)).unwrap();
+        finish(&mut s, FrameTimes::default()).unwrap();
+        assert!(s.latched(ms(t0, 177)) && s.latched(ms(t0, 184)) && !s.latched(ms(t0, 185)));
+        assert_eq!(s.next_wakeup(ms(t0, 184)), Some(ms(t0, 185)));
+        assert_eq!(s.poll_frame(ms(t0, 185), 1.0).unwrap().pose.seq, 9);
+        // A pause of a second teaches nothing; a jump in spacing moves the average by 1/8.
+        let mut t = Session::new(W, H, 50).with_pose_latch(0.25);
+        t.on_pose(&pose(1, 0.0), t0).unwrap();
+        t.on_pose(&pose(2, 1.0), ms(t0, 1000)).unwrap();
+        assert_eq!(t.pose_period(), None);
+        t.on_pose(&pose(3, 2.0), ms(t0, 1020)).unwrap();
+        t.on_pose(&pose(4, 3.0), ms(t0, 1060)).unwrap();
+        assert_eq!(t.pose_period(), Some(Duration::from_micros(22_500)));
+        // Without a latch (the default) a frame never waits.
+        let mut u = Session::new(W, H, 50);
+        for k in 0..3u32 {
+            u.on_pose(&pose(k + 1, f64::from(k)), ms(t0, 20 * u64::from(k))).unwrap();
+        }
+        assert!(!u.latched(ms(t0, 57)));
+    }
+
     #[test]
     fn nothing_before_the_first_pose_then_an_idr() {
         let t0 = Instant::now();
         let mut s = Session::new(W, H, 50);
         assert_eq!(s.poll_frame(t0, 1.0), None);
-        assert_eq!(s.next_wakeup(), None);
+        assert_eq!(s.next_wakeup(t0), None);
         // A PLI before any pose does not invent a frame.
         assert!(!s.on_picture_loss(t0));
         assert_eq!(s.poll_frame(ms(t0, 5), 1.0), None);
@@ -386,7 +498,7 @@ mod tests {
         assert_eq!((info.frame, info.pose_seq), (1, 1));
         assert_eq!(info.t_client_ms, 20.0);
         // The slot opens 40 ms after the previous start, less the early-start allowance (4 ms).
-        assert_eq!(s.next_wakeup(), Some(ms(t0, 36)));
+        assert_eq!(s.next_wakeup(t0), Some(ms(t0, 36)));
         assert_eq!(s.poll_frame(ms(t0, 35), 1.0), None);
         let job2 = s.poll_frame(ms(t0, 40), 1.0).unwrap();
         assert_eq!((job2.frame, job2.pose.seq), (2, 4));
@@ -410,7 +522,7 @@ mod tests {
         s.rendered(two.frame);
         s.on_pose(&pose(3, 2.0), ms(t0, 15)).unwrap();
         assert!(!s.ready(ms(t0, 20)), "two frames in flight is the most");
-        assert_eq!(s.next_wakeup(), None);
+        assert_eq!(s.next_wakeup(t0), None);
         assert_eq!(s.frame_done(one.frame, FrameTimes::default()).unwrap().pose_seq, 1);
         assert!(s.ready(ms(t0, 20)));
         assert_eq!(s.frame_done(two.frame, FrameTimes::default()).unwrap().pose_seq, 2);
@@ -481,7 +593,7 @@ mod tests {
         assert!(!s.on_picture_loss(ms(t0, 100)), "within 250 ms of the first IDR");
         assert!(s.on_picture_loss(ms(t0, 300)));
         assert!(!s.on_picture_loss(ms(t0, 301)), "already owed");
-        assert_eq!(s.next_wakeup(), Some(ms(t0, 18)), "the 20 ms slot less the early-start allowance");
+        assert_eq!(s.next_wakeup(t0), Some(ms(t0, 18)), "the 20 ms slot less the early-start allowance");
         let job = s.poll_frame(ms(t0, 300), 1.0).unwrap();
         assert!(job.idr && job.same_as_previous && job.pose.seq == 1);
         finish(&mut s, FrameTimes::default());
