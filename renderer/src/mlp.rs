@@ -149,20 +149,13 @@ struct Int8Hidden {
 impl Int8Hidden {
     fn new(w1t: &[f32]) -> Self {
         let w1 = |j: usize, i: usize| w1t[i * HIDDEN + j];
-        let scale: [f32; HIDDEN] =
-            std::array::from_fn(|j| (0..HIDDEN).fold(0.0f32, |m, i| m.max(w1(j, i).abs())) / 127.0);
+        let scale: [f32; HIDDEN] = std::array::from_fn(|j| (0..HIDDEN).fold(0.0f32, |m, i| m.max(w1(j, i).abs())) / 127.0);
         let w = (0..HIDDEN * HIDDEN / 4)
             .map(|k| {
                 let (block, group, jj) = (k / 256, (k / 16) % 16, k % 16);
                 let j = 16 * block + jj;
                 let byte = |b: usize| {
-                    if scale[j] > 0.0 {
-                        (w1(j, 4 * group + b) / scale[j])
-                            .round()
-                            .clamp(-127.0, 127.0) as i8
-                    } else {
-                        0
-                    }
+                    if scale[j] > 0.0 { (w1(j, 4 * group + b) / scale[j]).round().clamp(-127.0, 127.0) as i8 } else { 0 }
                 };
                 i32::from_le_bytes([byte(0) as u8, byte(1) as u8, byte(2) as u8, byte(3) as u8])
             })
@@ -443,9 +436,7 @@ pub mod simd {
     /// Whether the CPU has AVX-512 VNNI for [`super::MlpKernel::with_int8_hidden`] (within
     /// the cap of `NEPHELE_SIMD`).
     pub fn vnni() -> bool {
-        level() == Level::Avx512
-            && std::arch::is_x86_feature_detected!("avx512bw")
-            && std::arch::is_x86_feature_detected!("avx512vnni")
+        level() == Level::Avx512 && std::arch::is_x86_feature_detected!("avx512bw") && std::arch::is_x86_feature_detected!("avx512vnni")
     }
 
     /// The hidden layer in 8 bits (see [`super::MlpKernel::with_int8_hidden`]): rows of
@@ -454,13 +445,7 @@ pub mod simd {
     /// Like [`dense512`], skips groups of 4 inputs that are zero for the whole tile and
     /// returns the outputs that are not.
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-    fn dense_int8(
-        q: &super::Int8Hidden,
-        b: &[f32; HIDDEN],
-        h0: &[[f32; TILE]; HIDDEN],
-        active: &Active,
-        y: &mut [[f32; TILE]; HIDDEN],
-    ) -> Active {
+    fn dense_int8(q: &super::Int8Hidden, b: &[f32; HIDDEN], h0: &[[f32; TILE]; HIDDEN], active: &Active, y: &mut [[f32; TILE]; HIDDEN]) -> Active {
         let zero = _mm512_setzero_ps();
         let mut largest = zero;
         let mut groups = 0u32;
@@ -470,11 +455,7 @@ pub mod simd {
             groups |= 1 << (i / 4);
         }
         // Per lane: bytes = h · 255 / largest (0 where the query's hidden vector is all 0).
-        let to_byte = _mm512_maskz_div_ps(
-            _mm512_cmp_ps_mask::<_CMP_GT_OQ>(largest, zero),
-            _mm512_set1_ps(255.0),
-            largest,
-        );
+        let to_byte = _mm512_maskz_div_ps(_mm512_cmp_ps_mask::<_CMP_GT_OQ>(largest, zero), _mm512_set1_ps(255.0), largest);
         let lane_scale = _mm512_mul_ps(largest, _mm512_set1_ps(1.0 / 255.0));
         let mut packed = [_mm512_setzero_si512(); HIDDEN / 4];
         let mut which = [0u8; HIDDEN / 4];
@@ -485,39 +466,25 @@ pub mod simd {
             let mut p = _mm512_setzero_si512();
             for (byte, row) in h0[4 * g..4 * g + 4].iter().enumerate() {
                 // SAFETY: a row is 16 f32. 0 ≤ h ≤ largest, so the rounded byte is 0..=255.
-                let v = _mm512_cvtps_epi32(_mm512_mul_ps(
-                    unsafe { _mm512_loadu_ps(row.as_ptr()) },
-                    to_byte,
-                ));
+                let v = _mm512_cvtps_epi32(_mm512_mul_ps(unsafe { _mm512_loadu_ps(row.as_ptr()) }, to_byte));
                 p = _mm512_or_si512(p, _mm512_sllv_epi32(v, _mm512_set1_epi32(8 * byte as i32)));
             }
             (packed[n], which[n]) = (p, g as u8);
             n += 1;
         }
-        let mut out = Active {
-            rows: [0; HIDDEN],
-            n: 0,
-        };
+        let mut out = Active { rows: [0; HIDDEN], n: 0 };
         for block in 0..HIDDEN / 16 {
-            let w: &[i32; 256] = q.w[256 * block..256 * (block + 1)]
-                .try_into()
-                .expect("a block of weights");
+            let w: &[i32; 256] = q.w[256 * block..256 * (block + 1)].try_into().expect("a block of weights");
             let mut acc = [_mm512_setzero_si512(); 16];
             for (p, &g) in packed[..n].iter().zip(&which[..n]) {
-                let wg: &[i32; 16] = w[16 * (g as usize % 16)..16 * (g as usize % 16) + 16]
-                    .try_into()
-                    .expect("a group of weights");
+                let wg: &[i32; 16] = w[16 * (g as usize % 16)..16 * (g as usize % 16) + 16].try_into().expect("a group of weights");
                 for (a, &wj) in acc.iter_mut().zip(wg) {
                     *a = _mm512_dpbusd_epi32(*a, *p, _mm512_set1_epi32(wj));
                 }
             }
             for (jj, a) in acc.iter().enumerate() {
                 let j = 16 * block + jj;
-                let v = _mm512_fmadd_ps(
-                    _mm512_mul_ps(_mm512_cvtepi32_ps(*a), lane_scale),
-                    _mm512_set1_ps(q.scale[j]),
-                    _mm512_set1_ps(b[j]),
-                );
+                let v = _mm512_fmadd_ps(_mm512_mul_ps(_mm512_cvtepi32_ps(*a), lane_scale), _mm512_set1_ps(q.scale[j]), _mm512_set1_ps(b[j]));
                 let v = _mm512_max_ps(v, zero);
                 // SAFETY: `y[j]` is 16 f32.
                 unsafe { _mm512_storeu_ps(y[j].as_mut_ptr(), v) };
@@ -532,14 +499,7 @@ pub mod simd {
     fn avx512_int8(k: &MlpKernel, x: &TileInput) -> [[f32; TILE]; 4] {
         let q = k.hidden8.as_ref().expect("checked by the caller");
         let mut h0 = [[0.0f32; TILE]; HIDDEN];
-        let active = dense512::<HIDDEN, 16>(
-            &k.w0t,
-            &k.b0,
-            &x[..k.input],
-            &Active::all(k.input),
-            &mut h0,
-            true,
-        );
+        let active = dense512::<HIDDEN, 16>(&k.w0t, &k.b0, &x[..k.input], &Active::all(k.input), &mut h0, true);
         let mut h1 = [[0.0f32; TILE]; HIDDEN];
         let active = dense_int8(q, &k.b1, &h0, &active, &mut h1);
         let mut o = [[0.0f32; TILE]; 4];
@@ -731,24 +691,15 @@ mod tests {
     #[test]
     fn int8_hidden_layer_errs_within_its_rounding_bound() {
         if !simd::vnni() {
-            eprintln!(
-                "this CPU has no AVX-512 VNNI: the 8-bit hidden layer is never used here (the f32 kernel is)"
-            );
-            assert!(
-                !SpecularMlp::zeros(4)
-                    .kernel()
-                    .with_int8_hidden()
-                    .int8_hidden()
-            );
+            eprintln!("this CPU has no AVX-512 VNNI: the 8-bit hidden layer is never used here (the f32 kernel is)");
+            assert!(!SpecularMlp::zeros(4).kernel().with_int8_hidden().int8_hidden());
             return;
         }
         let mut rng = SmallRng::seed_from_u64(21);
         let (mut z_sq, mut z_max, mut count) = (0.0f64, 0.0f64, 0usize);
         for (input, scale) in [(25, 1.0f32), (25, 1e-4), (25, 1e3), (64, 1.0), (7, 1.0)] {
             let mut m = SpecularMlp::zeros(input);
-            for w in [
-                &mut m.w0, &mut m.b0, &mut m.w1, &mut m.b1, &mut m.w2, &mut m.b2,
-            ] {
+            for w in [&mut m.w0, &mut m.b0, &mut m.w1, &mut m.b1, &mut m.w2, &mut m.b2] {
                 w.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
             }
             if input == 7 {
@@ -758,79 +709,46 @@ mod tests {
             assert!(k.int8_hidden());
             let mut x = [[0.0f32; TILE]; MAX_INPUT];
             for row in x.iter_mut().take(input) {
-                row.iter_mut()
-                    .for_each(|v| *v = scale * rng.random_range(-3.0..3.0));
+                row.iter_mut().for_each(|v| *v = scale * rng.random_range(-3.0..3.0));
             }
             // Lane 0 without input (with negative biases: every hidden unit off); lane 1 with
             // one tiny input.
             let all_off = input == 7;
-            x.iter_mut()
-                .take(input)
-                .for_each(|row| (row[0], row[1]) = (0.0, 0.0));
+            x.iter_mut().take(input).for_each(|row| (row[0], row[1]) = (0.0, 0.0));
             x[0][1] = 1e-6;
             let got = k.forward_tile(&x);
             let f32_tile = m.kernel().forward_tile(&x);
             for l in 0..TILE {
                 let xs: Vec<f32> = (0..input).map(|i| x[i][l]).collect();
-                let h0: Vec<f32> = (0..HIDDEN)
-                    .map(|j| {
-                        (m.b0[j] + (0..input).map(|i| m.w0[j * input + i] * xs[i]).sum::<f32>())
-                            .max(0.0)
-                    })
-                    .collect();
+                let h0: Vec<f32> = (0..HIDDEN).map(|j| (m.b0[j] + (0..input).map(|i| m.w0[j * input + i] * xs[i]).sum::<f32>()).max(0.0)).collect();
                 let lambda = h0.iter().fold(0.0f32, |a, &v| a.max(v)) / 255.0;
                 let (bound1, var1): (Vec<f32>, Vec<f64>) = (0..HIDDEN)
                     .map(|j| {
                         let row = &m.w1[j * HIDDEN..(j + 1) * HIDDEN];
                         let s = row.iter().fold(0.0f32, |a, v| a.max(v.abs())) / 127.0;
-                        let size: f32 = m.b1[j].abs()
-                            + row.iter().zip(&h0).map(|(w, h)| (w * h).abs()).sum::<f32>();
-                        let bound = row
-                            .iter()
-                            .zip(&h0)
-                            .map(|(w, h)| w.abs() * lambda / 2.0 + h * s / 2.0 + s * lambda / 4.0)
-                            .sum::<f32>()
-                            + 1e-5 * size;
-                        let var = row
-                            .iter()
-                            .zip(&h0)
-                            .map(|(&w, &h)| ((w * lambda).powi(2) + (h * s).powi(2)) as f64 / 12.0)
-                            .sum::<f64>();
+                        let size: f32 = m.b1[j].abs() + row.iter().zip(&h0).map(|(w, h)| (w * h).abs()).sum::<f32>();
+                        let bound = row.iter().zip(&h0).map(|(w, h)| w.abs() * lambda / 2.0 + h * s / 2.0 + s * lambda / 4.0).sum::<f32>() + 1e-5 * size;
+                        let var = row.iter().zip(&h0).map(|(&w, &h)| ((w * lambda).powi(2) + (h * s).powi(2)) as f64 / 12.0).sum::<f64>();
                         (bound, var)
                     })
                     .unzip();
                 let want = m.forward(&xs);
                 for (o, (got_o, want_o)) in got.iter().zip(want).enumerate() {
-                    let bound = (0..HIDDEN)
-                        .map(|j| m.w2[o * HIDDEN + j].abs() * bound1[j])
-                        .sum::<f32>()
-                        + 1e-5 * (1.0 + want_o.abs());
+                    let bound = (0..HIDDEN).map(|j| m.w2[o * HIDDEN + j].abs() * bound1[j]).sum::<f32>() + 1e-5 * (1.0 + want_o.abs());
                     let err = (got_o[l] - want_o).abs();
-                    assert!(
-                        err <= bound,
-                        "input {input} ×{scale} lane {l} out {o}: {} vs {want_o} (bound {bound})",
-                        got_o[l]
-                    );
+                    assert!(err <= bound, "input {input} ×{scale} lane {l} out {o}: {} vs {want_o} (bound {bound})", got_o[l]);
                     if l == 0 && all_off {
-                        assert_eq!(
-                            got_o[l], f32_tile[o][l],
-                            "no hidden value: the f32 kernel's bits"
-                        );
+                        assert_eq!(got_o[l], f32_tile[o][l], "no hidden value: the f32 kernel's bits");
                         continue;
                     }
-                    let std = (0..HIDDEN)
-                        .map(|j| (m.w2[o * HIDDEN + j] as f64).powi(2) * var1[j])
-                        .sum::<f64>()
-                        .sqrt();
+                    let std = (0..HIDDEN).map(|j| (m.w2[o * HIDDEN + j] as f64).powi(2) * var1[j]).sum::<f64>().sqrt();
                     let z = err as f64 / (std + 1e-6 * (1.0 + want_o.abs() as f64));
                     (z_sq, z_max, count) = (z_sq + z * z, z_max.max(z), count + 1);
                 }
             }
         }
         let z_rms = (z_sq / count as f64).sqrt();
-        eprintln!(
-            "errors in predicted standard deviations: RMS {z_rms:.2}, largest {z_max:.2} over {count} outputs"
-        );
+        eprintln!("errors in predicted standard deviations: RMS {z_rms:.2}, largest {z_max:.2} over {count} outputs");
         assert!(z_rms <= 1.5 && z_max <= 6.0, "RMS {z_rms}, largest {z_max}");
     }
 }

@@ -149,6 +149,10 @@ fn bad_input_is_a_clear_error() {
         (vec!["replay", "--trace", "/nonexistent.json"], "nonexistent.json"),
         (vec!["bench", "render", "--backends", "cpu-ref", "--marches", "ray"], "add cpu to --backends"),
         (vec!["bench", "render", "--backends", "cpu", "--marches", "simd"], "the marches are avx512, avx2 and ray"),
+        (vec!["bench", "render", "--backends", "cpu", "--networks", "f16"], "the networks are f32 and int8"),
+        (vec!["serve", "--pose-latch", "2"], "outside 0..=0.5"),
+        (vec!["serve", "--pose-latch", "NaN"], "outside 0..=0.5"),
+        (vec!["bench", "stream", "--pose-latch=-0.1"], "outside 0..=0.5"),
     ] {
         let o = nephele(&args);
         assert!(!o.status.success(), "{args:?} should fail");

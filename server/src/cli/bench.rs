@@ -102,7 +102,7 @@ pub enum BenchCommand {
         frame_budget_ms: f64,
         /// Share of the pose period a frame may wait for a pose that is due (`serve
         /// --pose-latch`; 0: never).
-        #[arg(long, default_value_t = crate::master::core::POSE_LATCH)]
+        #[arg(long, default_value_t = crate::master::core::POSE_LATCH, value_parser = crate::master::core::parse_pose_latch)]
         pose_latch: f64,
     },
     /// Ray-march / network / total ms, rays/s and hit fraction per backend and size.

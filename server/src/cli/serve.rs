@@ -61,7 +61,7 @@ pub struct MasterOptions {
     pub batching: bool,
     /// A frame whose pose is nearly a pose period old may wait up to this share of the
     /// period for the next pose, so it shows a fresh one (0: never waits; at most 0.5).
-    #[arg(long, default_value_t = crate::master::core::POSE_LATCH)]
+    #[arg(long, default_value_t = crate::master::core::POSE_LATCH, value_parser = crate::master::core::parse_pose_latch)]
     pub pose_latch: f64,
     /// `load`: refuse joins while a user starves or when the measured farm could not serve
     /// the newcomer at the lowest scale (NEPHELE Algorithm 1); `open`: admit up to

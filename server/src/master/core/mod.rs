@@ -113,6 +113,12 @@ pub struct CoreConfig {
 /// Default of [`CoreConfig::pose_latch`].
 pub const POSE_LATCH: f64 = 0.25;
 
+/// Parses `--pose-latch`: a share of the pose period in 0..=0.5.
+pub fn parse_pose_latch(s: &str) -> Result<f64, String> {
+    let share: f64 = s.trim().parse().map_err(|_| format!("{s:?} is not a number"))?;
+    if (0.0..=0.5).contains(&share) { Ok(share) } else { Err(format!("{share} is outside 0..=0.5 (a share of the pose period; 0 never waits)")) }
+}
+
 impl Default for CoreConfig {
     fn default() -> Self {
         Self {
