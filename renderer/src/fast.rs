@@ -768,8 +768,32 @@ impl Footprints {
         Some(Self { rects, bin_rows, bins })
     }
 
-    /// Bounds for the `n` pixels of rows `y0..` of a `width`-wide view.
+    /// Bounds for the `n` pixels of rows `y0..` of a `width`-wide view. On a CPU with
+    /// AVX-512 a rectangle's row (a few pixels) is one masked min and max per 16 pixels.
     fn band_bounds(&self, width: u32, y0: u32, n: usize) -> RayBounds {
+        #[cfg(target_arch = "x86_64")]
+        if crate::mlp::simd::level() == crate::mlp::simd::Level::Avx512 {
+            #[allow(unsafe_code)]
+            // SAFETY: the CPU has AVX-512 F and VL, AVX2 and FMA (`Level::Avx512`).
+            return unsafe { v4::band_bounds(self, width, y0, n) };
+        }
+        self.band_bounds_with(width, y0, n, Self::span_bounds)
+    }
+
+    /// Takes one row of rectangle `r` (`lo`, `hi`: its pixels) into the bounds: one pass over
+    /// both, as compare-and-select; no NaN handling (none is stored), so it compiles to plain
+    /// vector min/max.
+    #[inline(always)]
+    fn span_bounds(lo: &mut [f32], hi: &mut [f32], r: &CellRect) {
+        for (lo, hi) in lo.iter_mut().zip(hi) {
+            *lo = if r.t_lo < *lo { r.t_lo } else { *lo };
+            *hi = if r.t_hi > *hi { r.t_hi } else { *hi };
+        }
+    }
+
+    /// [`Self::band_bounds`], with `span` taking one row of a rectangle into the bounds.
+    #[inline(always)]
+    fn band_bounds_with(&self, width: u32, y0: u32, n: usize, span: impl Fn(&mut [f32], &mut [f32], &CellRect)) -> RayBounds {
         let mut b = RayBounds { t_lo: vec![f32::INFINITY; n], t_hi: vec![f32::NEG_INFINITY; n] };
         let y_end = y0 + (n as u32).div_ceil(width);
         for y_bin in (y0 / self.bin_rows)..=((y_end - 1) / self.bin_rows) {
@@ -786,13 +810,8 @@ impl Footprints {
                     continue;
                 }
                 for y in r.y0.max(y0)..=r.y1.min(y_end - 1) {
-                    let span = ((y - y0) * width + r.x0) as usize..=((y - y0) * width + r.x1) as usize;
-                    // One pass over both bounds, as compare-and-select: no NaN handling
-                    // (none is stored), so it compiles to plain vector min/max.
-                    for (lo, hi) in b.t_lo[span.clone()].iter_mut().zip(&mut b.t_hi[span]) {
-                        *lo = if r.t_lo < *lo { r.t_lo } else { *lo };
-                        *hi = if r.t_hi > *hi { r.t_hi } else { *hi };
-                    }
+                    let at = ((y - y0) * width + r.x0) as usize..=((y - y0) * width + r.x1) as usize;
+                    span(&mut b.t_lo[at.clone()], &mut b.t_hi[at], r);
                 }
             }
         }
@@ -2024,6 +2043,25 @@ mod v4 {
     use super::*;
     use std::arch::x86_64::*;
 
+    /// [`Footprints::band_bounds`] with each row of a rectangle as a masked 16-lane min and
+    /// max per 16 pixels (`_mm512_min_ps(r, b)` is `r < b ? r : b`: the scalar rule to the
+    /// bit).
+    #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+    pub(super) fn band_bounds(fp: &Footprints, width: u32, y0: u32, n: usize) -> RayBounds {
+        fp.band_bounds_with(width, y0, n, |lo, hi, r| {
+            let (r_lo, r_hi) = (_mm512_set1_ps(r.t_lo), _mm512_set1_ps(r.t_hi));
+            for (lo, hi) in lo.chunks_mut(16).zip(hi.chunks_mut(16)) {
+                let mask = (u32::MAX >> (32 - lo.len())) as __mmask16;
+                // SAFETY: the mask covers `lo.len() == hi.len()` lanes, all inside the slices.
+                unsafe {
+                    let (l, h) = (lo.as_mut_ptr(), hi.as_mut_ptr());
+                    _mm512_mask_storeu_ps(l, mask, _mm512_min_ps(r_lo, _mm512_maskz_loadu_ps(mask, l)));
+                    _mm512_mask_storeu_ps(h, mask, _mm512_max_ps(r_hi, _mm512_maskz_loadu_ps(mask, h)));
+                }
+            }
+        })
+    }
+
     /// [`v3::march_wave`] with its steps in AVX-512 registers ([`steps`]).
     #[inline]
     #[allow(clippy::too_many_arguments)]
@@ -2609,6 +2647,46 @@ mod tests {
             unsafe { v3::composite(&tile, &o, &diffuse, bg, &mut cv, &mut alv) };
             let bits = |c: &[Vec3], a: &[f32]| c.iter().flat_map(|v| v.to_array()).chain(a.iter().copied()).map(f32::to_bits).collect::<Vec<_>>();
             assert_eq!(bits(&cs, &als), bits(&cv, &alv), "round {round}: composited pixels");
+        }
+    }
+
+    /// The AVX-512 band bounds (masked min/max per row of a rectangle) equal the scalar
+    /// ones to the bit: rows of 1 to 40 pixels (under, at and past 16 lanes), rectangles
+    /// cut by the band's rows and the view's edge, and ties of +0 and −0.
+    #[test]
+    fn masked_band_bounds_match_the_scalar_ones() {
+        #[cfg(target_arch = "x86_64")]
+        if crate::mlp::simd::level() == crate::mlp::simd::Level::Avx512 {
+            let (width, height) = (100u32, 37u32);
+            let mut rng = SmallRng::seed_from_u64(14);
+            let t = |rng: &mut SmallRng| if rng.random_bool(0.5) { [0.0, -0.0, 1.5, -2.25][rng.random_range(0..4)] } else { rng.random_range(-3.0..3.0f32) };
+            let rects: Vec<CellRect> = (0..400)
+                .map(|_| {
+                    let (x0, y0) = (rng.random_range(0..width), rng.random_range(0..height));
+                    let (x1, y1) = ((x0 + rng.random_range(0..40)).min(width - 1), (y0 + rng.random_range(0..9)).min(height - 1));
+                    let (a, b) = (t(&mut rng), t(&mut rng));
+                    CellRect { x0, x1, y0, y1, t_lo: a.min(b), t_hi: a.max(b) }
+                })
+                .collect();
+            let bin_rows = 16;
+            let mut bins = vec![Vec::new(); height.div_ceil(bin_rows) as usize];
+            for (i, r) in rects.iter().enumerate() {
+                for bin in &mut bins[(r.y0 / bin_rows) as usize..=(r.y1 / bin_rows) as usize] {
+                    bin.push(i as u32);
+                }
+            }
+            let fp = Footprints { rects, bin_rows, bins };
+            for y0 in (0..height).step_by(BAND_ROWS as usize) {
+                let n = (BAND_ROWS.min(height - y0) * width) as usize;
+                let scalar = fp.band_bounds_with(width, y0, n, Footprints::span_bounds);
+                #[allow(unsafe_code)]
+                // SAFETY: the CPU has AVX-512 (checked above).
+                let masked = unsafe { v4::band_bounds(&fp, width, y0, n) };
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&masked.t_lo), bits(&scalar.t_lo), "t_lo, band at row {y0}");
+                assert_eq!(bits(&masked.t_hi), bits(&scalar.t_hi), "t_hi, band at row {y0}");
+                assert!(scalar.t_lo.iter().any(|t| t.is_finite()), "the band at row {y0} has bounds");
+            }
         }
     }
 
