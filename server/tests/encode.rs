@@ -1,6 +1,6 @@
 //! Encoder stage: RGBA → I420 → OpenH264, decoded back with OpenH264's decoder.
 
-use nephele::master::encoder::{EncodeError, EncodedFrame, EncoderConfig, FrameEncoder, bench_encode, pattern_frames, test_pattern};
+use nephele::master::encoder::{EncodeError, EncodedFrame, EncoderConfig, FrameEncoder, MAX_ENCODER_THREADS, bench_encode, default_encoder_threads, pattern_frames, test_pattern};
 use nephele::wire::sei::{parse_pose_seq, split_nals};
 use openh264::decoder::Decoder;
 use openh264::formats::YUVSource;
@@ -232,12 +232,29 @@ fn config_bitrate_scales_and_clamps() {
     assert_eq!(EncoderConfig::new(321, 241, 30).padded_size(), (322, 242));
 }
 
+/// Any thread count OpenH264 takes gives a stream that decodes (one band of macroblock rows
+/// or several); outside 1..=4, a clear error instead of OpenH264's silent clamp.
+#[test]
+fn encoder_threads_take_one_to_four() {
+    let frames = pattern_frames(320, 240, 6);
+    for threads in [1, 2, 3, MAX_ENCODER_THREADS] {
+        let r = bench_encode(320, 240, &frames, 0.15, threads).unwrap();
+        assert!(r.psnr_db > 30.0 && r.psnr_db < 99.0, "{threads} threads: {} dB", r.psnr_db);
+    }
+    for threads in [0, MAX_ENCODER_THREADS + 1] {
+        let cfg = EncoderConfig { threads, ..EncoderConfig::new(320, 240, 30) };
+        let err = FrameEncoder::new(cfg).err().expect("rejected").to_string();
+        assert!(err.contains("encoder threads"), "{err}");
+    }
+    assert!((1..=MAX_ENCODER_THREADS).contains(&default_encoder_threads()));
+}
+
 /// Timings for the report: `cargo test --release -p nephele --test encode bench -- --nocapture --test-threads=1`.
 #[test]
 fn bench_encode_reports_numbers() {
     for (w, h) in [(640, 480), (1280, 720)] {
         let frames = pattern_frames(w, h, 100);
-        let [r, low] = [nephele::master::encoder::DEFAULT_BITS_PER_PIXEL, 0.03].map(|bpp| bench_encode(w, h, &frames, bpp).unwrap());
+        let [r, low] = [nephele::master::encoder::DEFAULT_BITS_PER_PIXEL, 0.03].map(|bpp| bench_encode(w, h, &frames, bpp, default_encoder_threads()).unwrap());
         for r in [r, low] {
             println!(
                 "{w}x{h}@{}fps {} kbps: convert p50 {:.2} ms p99 {:.2} ms | encode p50 {:.2} ms p99 {:.2} ms | {:.0} B/frame, IDR {} B, {:.2} dB",

@@ -80,6 +80,9 @@ pub enum BenchCommand {
         /// and quality against bandwidth.
         #[arg(long, value_delimiter = ',', default_values_t = [DEFAULT_BITS_PER_PIXEL])]
         bits_per_pixel: Vec<f64>,
+        /// OpenH264 threads to compare, 1..=4 (default: one more than the cores, at most 4).
+        #[arg(long, value_delimiter = ',')]
+        threads: Vec<u16>,
     },
     /// Per-stage and end-to-end streaming latency through an in-process server and the
     /// replay client, per frame size.
@@ -168,13 +171,18 @@ pub fn run(what: BenchCommand) -> Result<()> {
             print!("{}", format_report(&report));
             Ok(())
         }
-        BenchCommand::Encode { sizes, frames, asset, bits_per_pixel } => {
+        BenchCommand::Encode { sizes, frames, asset, bits_per_pixel, threads } => {
+            use crate::master::encoder::{MAX_ENCODER_THREADS, default_encoder_threads};
             for &bpp in &bits_per_pixel {
                 crate::master::encoder::check_bits_per_pixel(bpp).map_err(anyhow::Error::msg)?;
             }
+            let threads = if threads.is_empty() { vec![default_encoder_threads()] } else { threads };
+            if let Some(t) = threads.iter().find(|t| !(1..=MAX_ENCODER_THREADS).contains(t)) {
+                anyhow::bail!("--threads {t}: OpenH264 takes 1..={MAX_ENCODER_THREADS}");
+            }
             let prepared = if asset == "none" { None } else { Some(nephele_renderer::FastCpuBackend.prepare(load_asset(&asset)?)?) };
-            println!("| content | size | frames | bits/pixel | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes | PSNR dB |");
-            println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+            println!("| content | size | frames | bits/pixel | threads | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes | PSNR dB |");
+            println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
             for size in sizes.split(',') {
                 let (w, h) = parse_size(size)?;
                 let mut contents = vec![("test pattern".to_string(), crate::master::encoder::pattern_frames(w, h, frames))];
@@ -191,11 +199,13 @@ pub fn run(what: BenchCommand) -> Result<()> {
                 }
                 for (name, content) in contents {
                     for &bpp in &bits_per_pixel {
-                        let r = crate::master::encoder::bench_encode(w, h, &content, bpp)?;
-                        println!(
-                            "| {name} | {w}x{h} | {} | {bpp} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} | {:.2} |",
-                            r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes, r.psnr_db
-                        );
+                        for &t in &threads {
+                            let r = crate::master::encoder::bench_encode(w, h, &content, bpp, t)?;
+                            println!(
+                                "| {name} | {w}x{h} | {} | {bpp} | {t} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} | {:.2} |",
+                                r.frames, r.bitrate_bps / 1000, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes, r.psnr_db
+                            );
+                        }
                     }
                 }
             }
