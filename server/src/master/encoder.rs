@@ -62,8 +62,8 @@ pub const MAX_ENCODER_THREADS: u16 = 4;
 /// [`MAX_ENCODER_THREADS`]). OpenH264 gives each thread an equal band of macroblock rows; an
 /// object's rows cost more than the background's, so with one band per core one core idles
 /// while the other finishes. With a band more than the cores the spare band fills that gap:
-/// on 2 cores, lego, 3 threads took 0.72–0.75 of the time of 2 at 640×480 and 0.67–0.72 at
-/// 1280×720, the same bytes and PSNR (`nephele bench encode --threads 2,3,4`).
+/// on 2 cores, lego, 3 threads took 0.54–0.92 of the time of 2 at 640×480 and 0.64–0.85 at
+/// 1280×720 (seven runs), the same bytes and PSNR (`nephele bench encode --threads 2,3,4`).
 pub fn default_encoder_threads() -> u16 {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     (cores + 1).min(usize::from(MAX_ENCODER_THREADS)) as u16
