@@ -344,30 +344,53 @@ impl FrameEncoder {
     }
 }
 
-/// Bilinear resize of RGBA8 from `sw`×`sh` to `dw`×`dh`, pixel centres aligned.
+/// Bilinear resize of RGBA8 from `sw`×`sh` to `dw`×`dh`, pixel centres aligned, in fixed
+/// point (weights in 1/1024: within 0.75 of a level of exact). Each source row a frame needs
+/// is blended across once, and each output row blends two of those down: integer arithmetic
+/// over whole rows that the compiler vectorises. 640×480 from 320×240 takes ~0.2 of the time
+/// of blending every output pixel from four with a `round` call per channel, which took
+/// 13–15 ms while streaming: the auto render scale's frames paid that on top of their render.
 pub fn upscale_bilinear(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
+    const ONE: u32 = 1024;
     let (sw, sh, dw, dh) = (sw as usize, sh as usize, dw as usize, dh as usize);
-    // Source coordinate and weight of each destination column/row.
-    let taps = |d: usize, s: usize| -> Vec<(usize, usize, f32)> {
+    // Source pixels and the second one's weight for each destination column/row.
+    let taps = |d: usize, s: usize| -> Vec<(usize, usize, u32)> {
         (0..d)
             .map(|i| {
                 let x = ((i as f32 + 0.5) * s as f32 / d as f32 - 0.5).clamp(0.0, (s - 1) as f32);
                 let x0 = x as usize;
-                (x0, (x0 + 1).min(s - 1), x - x0 as f32)
+                (x0, (x0 + 1).min(s - 1), ((x - x0 as f32) * ONE as f32).round() as u32)
             })
             .collect()
     };
     let (cols, rows) = (taps(dw, sw), taps(dh, sh));
-    let mut out = vec![0u8; dw * dh * 4];
-    for (y, &(y0, y1, fy)) in rows.iter().enumerate() {
-        let (r0, r1) = (&src[y0 * sw * 4..(y0 + 1) * sw * 4], &src[y1 * sw * 4..(y1 + 1) * sw * 4]);
-        let row = &mut out[y * dw * 4..(y + 1) * dw * 4];
-        for (px, &(x0, x1, fx)) in row.chunks_exact_mut(4).zip(&cols) {
+    // Source row `y` blended across to the output's columns, × ONE.
+    let across = |y: usize, out: &mut [u32]| {
+        let row = &src[y * sw * 4..(y + 1) * sw * 4];
+        for (px, &(x0, x1, w)) in out.chunks_exact_mut(4).zip(&cols) {
             for c in 0..4 {
-                let top = f32::from(r0[x0 * 4 + c]) * (1.0 - fx) + f32::from(r0[x1 * 4 + c]) * fx;
-                let bottom = f32::from(r1[x0 * 4 + c]) * (1.0 - fx) + f32::from(r1[x1 * 4 + c]) * fx;
-                px[c] = (top * (1.0 - fy) + bottom * fy).round() as u8;
+                px[c] = u32::from(row[x0 * 4 + c]) * (ONE - w) + u32::from(row[x1 * 4 + c]) * w;
             }
+        }
+    };
+    let mut out = vec![0u8; dw * dh * 4];
+    let (mut top, mut bottom) = ((usize::MAX, vec![0u32; dw * 4]), (usize::MAX, vec![0u32; dw * 4]));
+    for (row, &(y0, y1, w)) in out.chunks_exact_mut(dw * 4).zip(&rows) {
+        if top.0 != y0 {
+            if bottom.0 == y0 {
+                std::mem::swap(&mut top, &mut bottom);
+            } else {
+                across(y0, &mut top.1);
+                top.0 = y0;
+            }
+        }
+        if bottom.0 != y1 {
+            across(y1, &mut bottom.1);
+            bottom.0 = y1;
+        }
+        // At most 255 · ONE², rounded: fits u32 and then u8.
+        for ((o, &a), &b) in row.iter_mut().zip(&top.1).zip(&bottom.1) {
+            *o = ((a * (ONE - w) + b * w + ONE * ONE / 2) / (ONE * ONE)) as u8;
         }
     }
     out
@@ -481,5 +504,37 @@ mod tests {
         assert_eq!(reds, vec![0, 64, 191, 255]);
         // Same size is the identity.
         assert_eq!(upscale_bilinear(&src, 2, 1, 2, 1), src.to_vec());
+    }
+
+    /// The fixed-point resize is within 0.75 of a level of exact bilinear interpolation (f64, the
+    /// same pixel-centre alignment) on noise, for up- and downscales, odd sizes and a single
+    /// source pixel.
+    #[test]
+    fn fixed_point_upscaling_stays_near_exact_bilinear() {
+        let mut seed = 14u32;
+        let mut noise = || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 24) as u8
+        };
+        for (sw, sh, dw, dh) in [(320, 240, 640, 480), (97, 31, 250, 77), (1, 1, 5, 3), (64, 48, 40, 30), (33, 17, 33, 17)] {
+            let src: Vec<u8> = (0..sw * sh * 4).map(|_| noise()).collect();
+            let out = upscale_bilinear(&src, sw as u32, sh as u32, dw as u32, dh as u32);
+            let at = |d: usize, s: usize, i: usize| ((i as f64 + 0.5) * s as f64 / d as f64 - 0.5).clamp(0.0, (s - 1) as f64);
+            let mut worst = 0.0f64;
+            for y in 0..dh {
+                let (fy, gy) = (at(dh, sh, y), at(dh, sh, y).floor() as usize);
+                let (y1, wy) = ((gy + 1).min(sh - 1), fy - gy as f64);
+                for x in 0..dw {
+                    let (fx, gx) = (at(dw, sw, x), at(dw, sw, x).floor() as usize);
+                    let (x1, wx) = ((gx + 1).min(sw - 1), fx - gx as f64);
+                    for c in 0..4 {
+                        let v = |xx: usize, yy: usize| f64::from(src[(yy * sw + xx) * 4 + c]);
+                        let exact = (v(gx, gy) * (1.0 - wx) + v(x1, gy) * wx) * (1.0 - wy) + (v(gx, y1) * (1.0 - wx) + v(x1, y1) * wx) * wy;
+                        worst = worst.max((f64::from(out[(y * dw + x) * 4 + c]) - exact).abs());
+                    }
+                }
+            }
+            assert!(worst <= 0.75, "{sw}x{sh} → {dw}x{dh}: {worst} levels off exact bilinear");
+        }
     }
 }
