@@ -347,10 +347,28 @@ impl FrameEncoder {
 /// Bilinear resize of RGBA8 from `sw`×`sh` to `dw`×`dh`, pixel centres aligned, in fixed
 /// point (weights in 1/1024: within 0.75 of a level of exact). Each source row a frame needs
 /// is blended across once, and each output row blends two of those down: integer arithmetic
-/// over whole rows that the compiler vectorises. 640×480 from 320×240 takes ~0.2 of the time
-/// of blending every output pixel from four with a `round` call per channel, which took
+/// over whole rows that the compiler vectorises, 8 lanes wide where the CPU has AVX2
+/// (0.46–0.67 of the baseline build's time). 640×480 from 320×240 takes 0.11–0.13 of the
+/// time of blending every output pixel from four with a `round` call per channel, which took
 /// 13–15 ms while streaming: the auto render scale's frames paid that on top of their render.
 pub fn upscale_bilinear(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        #[target_feature(enable = "avx2")]
+        fn avx2(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
+            upscale_rows(src, sw, sh, dw, dh)
+        }
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has AVX2 (detected above); the body is safe code.
+        return unsafe { avx2(src, sw, sh, dw, dh) };
+    }
+    upscale_rows(src, sw, sh, dw, dh)
+}
+
+/// [`upscale_bilinear`]'s body, compiled for the baseline and, inlined, for AVX2 (its 32-bit
+/// products 8 at a time): the same integers either way.
+#[inline(always)]
+fn upscale_rows(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
     const ONE: u32 = 1024;
     let (sw, sh, dw, dh) = (sw as usize, sh as usize, dw as usize, dh as usize);
     // Source pixels and the second one's weight for each destination column/row.
@@ -491,7 +509,7 @@ pub fn pattern_frames(width: u32, height: u32, frames: u32) -> Vec<Vec<u8>> {
 
 #[cfg(test)]
 mod tests {
-    use super::upscale_bilinear;
+    use super::{upscale_bilinear, upscale_rows};
 
     #[test]
     fn upscaling_keeps_flat_colour_and_interpolates_between_pixels() {
@@ -535,6 +553,7 @@ mod tests {
                 }
             }
             assert!(worst <= 0.75, "{sw}x{sh} → {dw}x{dh}: {worst} levels off exact bilinear");
+            assert_eq!(upscale_rows(&src, sw as u32, sh as u32, dw as u32, dh as u32), out, "the baseline build's integers");
         }
     }
 }
