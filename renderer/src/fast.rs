@@ -989,7 +989,16 @@ impl FastPrepared {
         let t_marched = Instant::now();
         stats.march_s = (t_marched - t).as_secs_f64();
         self.shade::<V>(&queries, bg, &mut color, &mut alpha);
-        for (i, px) in rgba.chunks_exact_mut(4).enumerate() {
+        let mut packed = 0;
+        #[cfg(target_arch = "x86_64")]
+        if V {
+            #[allow(unsafe_code)]
+            // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`).
+            unsafe {
+                packed = v3::pack_rgba(&color, &alpha, rgba)
+            };
+        }
+        for (i, px) in rgba.chunks_exact_mut(4).enumerate().skip(packed) {
             let c = color[i];
             px.copy_from_slice(&[to_unorm8(c.x), to_unorm8(c.y), to_unorm8(c.z), to_unorm8(alpha[i])]);
         }
@@ -1921,6 +1930,37 @@ mod v3 {
         (_mm256_cvtph_ps(_mm256_castsi256_si128(packed)), _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(packed)))
     }
 
+    /// The first pixels of `rgba`, 8 at a time, from `color` and `alpha` as [`to_unorm8`]
+    /// makes them (clamped to 0..=1 with NaN → 0, × 255, rounded half away from zero: plus the
+    /// largest float below ½ and truncated, which rounds every value in 0..=255 the same);
+    /// returns how many pixels it wrote (a multiple of 8, the rest left to the caller).
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) fn pack_rgba(color: &[Vec3], alpha: &[f32], rgba: &mut [u8]) -> usize {
+        use std::arch::x86_64::*;
+        let (zero, one, scale, below_half) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0), _mm256_set1_ps(255.0), _mm256_set1_ps(0.499_999_97));
+        // `max(v, 0)` takes its second operand when `v` is NaN.
+        let unorm8 = |v: __m256| _mm256_cvttps_epi32(_mm256_add_ps(_mm256_mul_ps(_mm256_min_ps(_mm256_max_ps(v, zero), one), scale), below_half));
+        let channels: &[f32] = bytemuck::cast_slice(color);
+        let mut n = 0;
+        for ((px, c), a) in rgba.chunks_exact_mut(32).zip(channels.chunks_exact(24)).zip(alpha.chunks_exact(8)) {
+            let (mut rgb, mut alpha8) = ([0i32; 24], [0i32; 8]);
+            // SAFETY: 8-float loads from `c` (24 floats) and `a` (8), 8-int stores into
+            // `rgb` (24) and `alpha8` (8).
+            unsafe {
+                for k in 0..3 {
+                    _mm256_storeu_si256(rgb.as_mut_ptr().add(8 * k).cast(), unorm8(_mm256_loadu_ps(c.as_ptr().add(8 * k))));
+                }
+                _mm256_storeu_si256(alpha8.as_mut_ptr().cast(), unorm8(_mm256_loadu_ps(a.as_ptr())));
+            }
+            for (p, out) in px.chunks_exact_mut(4).enumerate() {
+                out.copy_from_slice(&[rgb[3 * p] as u8, rgb[3 * p + 1] as u8, rgb[3 * p + 2] as u8, alpha8[p] as u8]);
+            }
+            n += 8;
+        }
+        n
+    }
+
     /// [`super::view_inputs`] 8 queries at a time (the spherical harmonics of [`sh4`] by the
     /// same operations in the same order: the same bits). Lanes past the tile's end repeat
     /// its first query.
@@ -2648,6 +2688,45 @@ mod tests {
             let bits = |c: &[Vec3], a: &[f32]| c.iter().flat_map(|v| v.to_array()).chain(a.iter().copied()).map(f32::to_bits).collect::<Vec<_>>();
             assert_eq!(bits(&cs, &als), bits(&cv, &alv), "round {round}: composited pixels");
         }
+    }
+
+    /// The vector RGBA pack gives `to_unorm8`'s bytes: NaN, ±0, ±∞, out of range, and
+    /// values whose × 255 lies within a few ulps of every k + ½ (the rounding's ties), and it
+    /// leaves a band's last pixels (not a multiple of 8) to the caller.
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn vector_rgba_pack_matches_to_unorm8() {
+        if crate::mlp::simd::level() == crate::mlp::simd::Level::Portable {
+            return;
+        }
+        let mut values = vec![f32::NAN, 0.0, -0.0, f32::INFINITY, f32::NEG_INFINITY, -1.0, 2.0, 1.0, 0.5, 1e-30];
+        for k in 0..256 {
+            let tie = (k as f32 + 0.5) / 255.0;
+            let mut v = tie;
+            for _ in 0..3 {
+                v = f32::from_bits(v.to_bits() - 1);
+            }
+            for _ in 0..7 {
+                values.push(v);
+                v = f32::from_bits(v.to_bits() + 1);
+            }
+        }
+        let mut rng = SmallRng::seed_from_u64(8);
+        values.extend((0..1000).map(|_| rng.random_range(-0.1..1.1f32)));
+        let n = values.len() / 4;
+        let color: Vec<Vec3> = (0..n).map(|i| Vec3::new(values[4 * i], values[4 * i + 1], values[4 * i + 2])).collect();
+        let alpha: Vec<f32> = (0..n).map(|i| values[4 * i + 3]).collect();
+        let mut rgba = vec![0u8; 4 * n];
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has x86-64-v3 (checked above).
+        let packed = unsafe { v3::pack_rgba(&color, &alpha, &mut rgba) };
+        assert_eq!(packed, n / 8 * 8);
+        assert!(n % 8 != 0, "the test leaves a tail");
+        for i in 0..packed {
+            let want = [to_unorm8(color[i].x), to_unorm8(color[i].y), to_unorm8(color[i].z), to_unorm8(alpha[i])];
+            assert_eq!(rgba[4 * i..4 * i + 4], want, "pixel {i}: {:?} {}", color[i], alpha[i]);
+        }
+        assert!(rgba[4 * packed..].iter().all(|&b| b == 0), "the tail is the caller's");
     }
 
     /// The AVX-512 band bounds (masked min/max per row of a rectangle) equal the scalar
