@@ -68,6 +68,7 @@ pub fn default_encoder_threads() -> u16 {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     (cores + 1).min(usize::from(MAX_ENCODER_THREADS)) as u16
 }
+
 /// Largest slice NAL, bytes: fits one RTP packet (MTU 1500 minus IP/UDP/SRTP/RTP headers).
 pub const MAX_SLICE_BYTES: u32 = 1200;
 
@@ -371,6 +372,9 @@ pub fn upscale_bilinear(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u
 fn upscale_rows(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
     const ONE: u32 = 1024;
     let (sw, sh, dw, dh) = (sw as usize, sh as usize, dw as usize, dh as usize);
+    if sw == 0 || sh == 0 || dw == 0 || dh == 0 {
+        return vec![0; dw * dh * 4];
+    }
     // Source pixels and the second one's weight for each destination column/row.
     let taps = |d: usize, s: usize| -> Vec<(usize, usize, u32)> {
         (0..d)
@@ -522,6 +526,9 @@ mod tests {
         assert_eq!(reds, vec![0, 64, 191, 255]);
         // Same size is the identity.
         assert_eq!(upscale_bilinear(&src, 2, 1, 2, 1), src.to_vec());
+        // Empty sizes give an empty or black frame, not a panic.
+        assert!(upscale_bilinear(&src, 2, 1, 0, 3).is_empty());
+        assert_eq!(upscale_bilinear(&[], 0, 0, 2, 1), vec![0; 8]);
     }
 
     /// The fixed-point resize is within 0.75 of a level of exact bilinear interpolation (f64, the
