@@ -153,7 +153,7 @@ fn bad_input_is_a_clear_error() {
         (vec!["serve", "--pose-latch", "2"], "outside 0..=0.5"),
         (vec!["serve", "--pose-latch", "NaN"], "outside 0..=0.5"),
         (vec!["bench", "stream", "--pose-latch=-0.1"], "outside 0..=0.5"),
-        (vec!["bench", "encode", "--asset", "none", "--threads", "2,5"], "--threads 5: OpenH264 takes 1..=4"),
+        (vec!["bench", "encode", "--asset", "none", "--threads", "2,5"], "--threads: 5 encoder threads: OpenH264 takes 1..=4"),
     ] {
         let o = nephele(&args);
         assert!(!o.status.success(), "{args:?} should fail");

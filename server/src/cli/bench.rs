@@ -172,13 +172,13 @@ pub fn run(what: BenchCommand) -> Result<()> {
             Ok(())
         }
         BenchCommand::Encode { sizes, frames, asset, bits_per_pixel, threads } => {
-            use crate::master::encoder::{MAX_ENCODER_THREADS, default_encoder_threads};
+            use crate::master::encoder::{check_bits_per_pixel, check_encoder_threads, default_encoder_threads};
             for &bpp in &bits_per_pixel {
-                crate::master::encoder::check_bits_per_pixel(bpp).map_err(anyhow::Error::msg)?;
+                check_bits_per_pixel(bpp).map_err(anyhow::Error::msg)?;
             }
             let threads = if threads.is_empty() { vec![default_encoder_threads()] } else { threads };
-            if let Some(t) = threads.iter().find(|t| !(1..=MAX_ENCODER_THREADS).contains(t)) {
-                anyhow::bail!("--threads {t}: OpenH264 takes 1..={MAX_ENCODER_THREADS}");
+            for &t in &threads {
+                check_encoder_threads(t).map_err(|e| anyhow::anyhow!("--threads: {e}"))?;
             }
             let prepared = if asset == "none" { None } else { Some(nephele_renderer::FastCpuBackend.prepare(load_asset(&asset)?)?) };
             println!("| content | size | frames | bits/pixel | threads | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes | PSNR dB |");

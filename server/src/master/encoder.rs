@@ -69,6 +69,11 @@ pub fn default_encoder_threads() -> u16 {
     (cores + 1).min(usize::from(MAX_ENCODER_THREADS)) as u16
 }
 
+/// Checks an encoder thread count: 1..=[`MAX_ENCODER_THREADS`].
+pub fn check_encoder_threads(threads: u16) -> Result<(), String> {
+    (1..=MAX_ENCODER_THREADS).contains(&threads).then_some(()).ok_or_else(|| format!("{threads} encoder threads: OpenH264 takes 1..={MAX_ENCODER_THREADS}"))
+}
+
 /// Largest slice NAL, bytes: fits one RTP packet (MTU 1500 minus IP/UDP/SRTP/RTP headers).
 pub const MAX_SLICE_BYTES: u32 = 1200;
 
@@ -174,9 +179,7 @@ impl FrameEncoder {
         if cfg.bitrate_bps == 0 {
             return Err(EncodeError::InvalidConfig("bitrate must be positive".into()));
         }
-        if !(1..=MAX_ENCODER_THREADS).contains(&cfg.threads) {
-            return Err(EncodeError::InvalidConfig(format!("{} encoder threads: OpenH264 takes 1..={MAX_ENCODER_THREADS}", cfg.threads)));
-        }
+        check_encoder_threads(cfg.threads).map_err(EncodeError::InvalidConfig)?;
         let h264 = H264Config::new()
             .usage_type(UsageType::CameraVideoRealTime)
             .profile(Profile::Baseline)
