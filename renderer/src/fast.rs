@@ -14,9 +14,10 @@
 //!   the cell and reaches out in the ray's direction (up to 8 cells per side, per octant of
 //!   directions), a finished lane takes the band's next pixel. The
 //!   rays' dependent reads overlap, and the steps have no branch on the data. Where the CPU
-//!   has AVX-512, the same 32 rays step as two groups of 16 lanes (`v4`: mask registers
-//!   instead of blends; 0.83–0.89 of the time per lego frame, the march alone 0.76–0.82;
-//!   `NEPHELE_MARCH=avx2` keeps the groups of 8). Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
+//!   has AVX-512, 64 rays step as four groups of 16 lanes (`v4`: mask registers
+//!   instead of blends; 0.83–0.89 of the time per lego frame, the march alone 0.76–0.82,
+//!   with 32 rays; 64 took 0.96–0.98 of that; `NEPHELE_MARCH=avx2` keeps 32 rays in groups
+//!   of 8). Without AVX2 (or with `NEPHELE_MARCH=ray`), one ray at a time: its samples
 //!   [`BATCH`] at a time, taken front to back by the same rule ([`Scan`]). All three give
 //!   the same frames to the bit (tested). σ at each sample is the reference's to the bit; the
 //!   only difference is which of two touching cells a sample exactly on their shared face
@@ -116,7 +117,7 @@ pub enum March {
     Ray,
     /// 32 rays at a time, one per lane, in four groups of 8 AVX2 lanes ([`v3::march_wave`]).
     Avx2,
-    /// The same 32 rays in two groups of 16 AVX-512 lanes ([`v4::march_wave`]).
+    /// 64 rays at a time, in four groups of 16 AVX-512 lanes ([`v4::march_wave`]).
     Avx512,
 }
 
@@ -182,7 +183,7 @@ impl March {
         match self {
             Self::Ray => "one ray at a time",
             Self::Avx2 => "32 rays, four groups of 8 AVX2 lanes",
-            Self::Avx512 => "32 rays, two groups of 16 AVX-512 lanes",
+            Self::Avx512 => "64 rays, four groups of 16 AVX-512 lanes",
         }
     }
 }
@@ -1375,7 +1376,6 @@ mod v3 {
     }
 
     /// The lanes of [`march_wave`]: each one's ray, lattice and scan state.
-    #[derive(Default)]
     pub(super) struct Wave {
         pub(super) o: [[f32; LANES]; 3],
         pub(super) d: [[f32; LANES]; 3],
@@ -1398,7 +1398,6 @@ mod v3 {
     }
 
     /// The open segment of each lane's ray ([`Segments`]' open run, kept in vectors).
-    #[derive(Default)]
     pub(super) struct Runs {
         /// All ones where the lane has an open run, and where it holds the heaviest sample.
         pub(super) open: [i32; LANES],
@@ -1408,6 +1407,20 @@ mod v3 {
         pub(super) peak_t: [f32; LANES],
         pub(super) first_t: [f32; LANES],
         pub(super) last_t: [f32; LANES],
+    }
+
+    impl Default for Wave {
+        fn default() -> Self {
+            // SAFETY: every field is an array of f32, i32 or u32, for which zero bits are valid.
+            unsafe { std::mem::zeroed() }
+        }
+    }
+
+    impl Default for Runs {
+        fn default() -> Self {
+            // SAFETY: as for `Wave`.
+            unsafe { std::mem::zeroed() }
+        }
     }
 
     impl Runs {
@@ -1476,8 +1489,12 @@ mod v3 {
 
     /// Rays in flight in [`march_wave`]: four groups of 8 lanes, whose steps are interleaved
     /// stage by stage so that the groups' reads overlap (2% faster per lego frame than two
-    /// groups; 16 rays were 13% faster than 8).
-    pub(super) const LANES: usize = 32;
+    /// groups; 16 rays were 13% faster than 8). With AVX-512, four groups of 16 (0.977–0.984
+    /// of the time per lego frame of two groups; on AVX2, 64 lanes as two rounds of four
+    /// groups of 8 were 3% slower than 32).
+    pub(super) const LANES: usize = 64;
+    /// Lanes of the AVX2 march, the first of the [`LANES`].
+    const LANES_AVX2: usize = 32;
 
     /// Steps of [`march_wave`] between looks at which lanes have finished. A finished lane
     /// idles until then: with 4, 8% of lane-steps on lego were idle, and 2 is 2% faster
@@ -1485,7 +1502,7 @@ mod v3 {
     const STEPS: usize = 2;
 
     /// The band's rays marched 32 at a time, one per lane ("wavefront"; four groups of 8
-    /// lanes, interleaved stage by stage): each step evaluates one lattice sample of every
+    /// lanes, interleaved stage by stage; 64 in groups of 16 on AVX-512): each step evaluates one lattice sample of every
     /// lane's ray, so the lanes' dependent reads (cell, then corners) overlap instead of
     /// queueing along one ray, and no sample past a ray's stop is evaluated. A lane whose
     /// sample lies in a dead cell jumps to the first lattice sample at or after where its ray
@@ -1515,8 +1532,9 @@ mod v3 {
         unsafe { march_wave_in::<MULTI, false, F>(p, f, s, step, gap_t, y0, bounds, n, finish) }
     }
 
-    /// [`march_wave`]'s body; `WIDE`: its steps in AVX-512 registers, two groups of 16 lanes
-    /// ([`super::v4::steps`]), else four groups of 8 in AVX2 registers.
+    /// [`march_wave`]'s body; `WIDE`: its steps in AVX-512 registers, four groups of 16 lanes
+    /// ([`super::v4::steps`]), else four groups of 8 in AVX2 registers (the first
+    /// [`LANES_AVX2`] lanes).
     ///
     /// # Safety
     /// The CPU has x86-64-v3, and AVX-512 (F, VL, BW, DQ) if `WIDE`; inlined only into
@@ -1579,8 +1597,9 @@ mod v3 {
             pixel[lane] = i;
             true
         };
-        let mut active = 0u32;
-        for lane in 0..LANES {
+        let mut active = 0u64;
+        let lanes = if WIDE { LANES } else { LANES_AVX2 };
+        for lane in 0..lanes {
             if refill(lane, &mut wave, &mut runs, &mut pixel) {
                 active |= 1 << lane;
             }
@@ -1588,7 +1607,7 @@ mod v3 {
         let rule = Rule { s, step, gap_t, margin: step / 16.0, r };
         while active != 0 {
             // Lanes that have finished (or are idle): frozen until the refill below.
-            let mut finished = !active & (u32::MAX >> (32 - LANES));
+            let mut finished = !active & (u64::MAX >> (64 - lanes));
             for _ in 0..STEPS {
                 if WIDE {
                     // SAFETY: the CPU has AVX-512 (the caller's guarantee); as below.
@@ -1827,7 +1846,7 @@ mod v3 {
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    fn rule8<const MULTI: bool>(rule: &Rule<'_>, wave: &mut Wave, runs: &mut Runs, segments: &mut Closed, at: usize, l: &Located, (is_live, sigma, ex): (__m256i, __m256, __m256), frozen: __m256i) -> u32 {
+    fn rule8<const MULTI: bool>(rule: &Rule<'_>, wave: &mut Wave, runs: &mut Runs, segments: &mut Closed, at: usize, l: &Located, (is_live, sigma, ex): (__m256i, __m256, __m256), frozen: __m256i) -> u64 {
         let s = rule.s;
         let (one, zero) = (_mm256_set1_ps(1.0), _mm256_setzero_ps());
         // SAFETY: 8-lane loads and stores at `at ≤ LANES − 8` of `LANES`-lane arrays.
@@ -1904,7 +1923,7 @@ mod v3 {
             let k_next = _mm256_blendv_epi8(_mm256_blendv_epi8(_mm256_cvttps_epi32(ks), k1, is_live), l.k, frozen);
             _mm256_storeu_si256(wave.k.as_mut_ptr().add(at).cast(), k_next);
             let past_end = !(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(k_end, k_next))) as u32) & 0xff;
-            ((_mm256_movemask_ps(_mm256_and_ps(stop, nonzero)) as u32) | past_end) << at
+            (((_mm256_movemask_ps(_mm256_and_ps(stop, nonzero)) as u32) | past_end) as u64) << at
         }
     }
 
@@ -2155,8 +2174,8 @@ mod v3 {
 }
 
 /// The wavefront march's steps in AVX-512 registers: the same lanes, state and rule as
-/// [`v3`], taken as two groups of 16 lanes with mask registers in place of blends (half
-/// the instructions per lane of the four groups of 8), and the density's f16 pairs split
+/// [`v3`], taken as four groups of 16 lanes with mask registers in place of blends (half
+/// the instructions per lane of the groups of 8), and the density's f16 pairs split
 /// by a 32→16-bit narrowing. The same operations in the same order on every lane, so the
 /// same frames to the bit (tested against the AVX2 and per-ray marches).
 #[cfg(target_arch = "x86_64")]
@@ -2204,8 +2223,8 @@ mod v4 {
         unsafe { v3::march_wave_in::<MULTI, true, F>(p, f, s, step, gap_t, y0, bounds, n, finish) }
     }
 
-    /// One step of every lane, two groups of 16 stage by stage (both groups' cell gathers,
-    /// then both groups' corner gathers and exps, then the rules); lanes set in `finished`
+    /// One step of every lane, four groups of 16 stage by stage (every group's cell gathers,
+    /// then every group's corner gathers and exps, then the rules); lanes set in `finished`
     /// are frozen. Returns the lanes that stopped or have no sample left.
     ///
     /// # Safety
@@ -2221,16 +2240,25 @@ mod v4 {
         wave: &mut Wave,
         runs: &mut Runs,
         segments: &mut Closed,
-        finished: u32,
+        finished: u64,
         step: f32,
-    ) -> u32 {
-        const { assert!(LANES == 32, "two groups of 16 lanes") };
-        let frozen = [finished as u16, (finished >> 16) as u16];
+    ) -> u64 {
+        const { assert!(LANES == 64, "four groups of 16 lanes") };
+        let frozen = [finished as u16, (finished >> 16) as u16, (finished >> 32) as u16, (finished >> 48) as u16];
         // SAFETY: as the caller guarantees; lanes `at..at + 16` of `LANES`-lane arrays.
         unsafe {
-            let at = [locate16(density, cells, wave, 0, step), locate16(density, cells, wave, 16, step)];
-            let sampled = [sigma16(density, cells, &at[0], frozen[0], step), sigma16(density, cells, &at[1], frozen[1], step)];
-            rule16::<MULTI>(rule, wave, runs, segments, 0, &at[0], sampled[0], frozen[0]) | rule16::<MULTI>(rule, wave, runs, segments, 16, &at[1], sampled[1], frozen[1])
+            // Written out: as `map`s over the groups, 11% slower per frame.
+            let at = [locate16(density, cells, wave, 0, step), locate16(density, cells, wave, 16, step), locate16(density, cells, wave, 32, step), locate16(density, cells, wave, 48, step)];
+            let sampled = [
+                sigma16(density, cells, &at[0], frozen[0], step),
+                sigma16(density, cells, &at[1], frozen[1], step),
+                sigma16(density, cells, &at[2], frozen[2], step),
+                sigma16(density, cells, &at[3], frozen[3], step),
+            ];
+            rule16::<MULTI>(rule, wave, runs, segments, 0, &at[0], sampled[0], frozen[0])
+                | rule16::<MULTI>(rule, wave, runs, segments, 16, &at[1], sampled[1], frozen[1])
+                | rule16::<MULTI>(rule, wave, runs, segments, 32, &at[2], sampled[2], frozen[2])
+                | rule16::<MULTI>(rule, wave, runs, segments, 48, &at[3], sampled[3], frozen[3])
         }
     }
 
@@ -2399,7 +2427,7 @@ mod v4 {
     #[inline]
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    fn rule16<const MULTI: bool>(rule: &Rule<'_>, wave: &mut Wave, runs: &mut Runs, segments: &mut Closed, at: usize, l: &Located, (is_live, sigma, ex): (__mmask16, __m512, __m512), frozen: __mmask16) -> u32 {
+    fn rule16<const MULTI: bool>(rule: &Rule<'_>, wave: &mut Wave, runs: &mut Runs, segments: &mut Closed, at: usize, l: &Located, (is_live, sigma, ex): (__mmask16, __m512, __m512), frozen: __mmask16) -> u64 {
         let s = rule.s;
         let (one, zero) = (_mm512_set1_ps(1.0), _mm512_setzero_ps());
         // SAFETY: 16-lane loads and stores at `at ≤ LANES − 16` of `LANES`-lane arrays.
@@ -2474,7 +2502,7 @@ mod v4 {
             let k_next = _mm512_mask_blend_epi32(frozen, _mm512_mask_blend_epi32(is_live, _mm512_cvttps_epi32(ks), k1), l.k);
             _mm512_storeu_si512(wave.k.as_mut_ptr().add(at).cast(), k_next);
             let past_end = !_mm512_cmpgt_epi32_mask(k_end, k_next);
-            (((stop & nonzero) | past_end) as u32) << at
+            (((stop & nonzero) | past_end) as u64) << at
         }
     }
 
