@@ -1482,7 +1482,7 @@ mod v3 {
             if n > 0 {
                 let slot = |s: usize| Segment { weight: self.weight[s][l], peak_w: self.peak_w[s][l], peak_t: self.peak_t[s][l], first_t: self.first_t[s][l], last_t: self.last_t[s][l] };
                 let closed: [Segment; MAX_SEGMENTS] = std::array::from_fn(slot);
-                tracker.set_closed(&closed[..n], usize::try_from(primary).ok());
+                tracker.set_closed(&closed, n, usize::try_from(primary).ok());
             }
         }
     }

@@ -196,13 +196,14 @@ impl Segments {
         Self { gap_t, closed: [Segment::default(); MAX_SEGMENTS], n_closed: 0, open: None, open_is_primary: false, primary: None }
     }
 
-    /// Makes `closed` (at most [`MAX_SEGMENTS`]; `primary`: the one holding the heaviest
-    /// sample) the closed segments, with no open run: for callers that keep the closed
+    /// Makes the first `n` of `closed` (`primary`: the one holding the heaviest sample) the
+    /// closed segments, with no open run: for callers that keep the closed
     /// segments themselves (the fast renderer, in vectors) and then [`Self::finish`] the ray.
-    pub fn set_closed(&mut self, closed: &[Segment], primary: Option<usize>) {
-        assert!(closed.len() <= MAX_SEGMENTS && primary.is_none_or(|p| p < closed.len()), "{} closed segments, primary {primary:?}", closed.len());
-        self.closed[..closed.len()].copy_from_slice(closed);
-        (self.n_closed, self.primary, self.open, self.open_is_primary) = (closed.len(), primary, None, false);
+    pub fn set_closed(&mut self, closed: &[Segment; MAX_SEGMENTS], n: usize, primary: Option<usize>) {
+        assert!(n <= MAX_SEGMENTS && primary.is_none_or(|p| p < n), "{n} closed segments, primary {primary:?}");
+        // The whole array (a fixed-size copy, no call to `memcpy`); slots from `n` on are unused.
+        self.closed = *closed;
+        (self.n_closed, self.primary, self.open, self.open_is_primary) = (n, primary, None, false);
     }
 
     fn close(&mut self) {
