@@ -365,13 +365,18 @@ pub mod simd {
             for (j, a) in acc.iter_mut().enumerate() {
                 *a = _mm512_set1_ps(b[o0 + j]);
             }
+            // No bounds check (and so no panic path) inside the loop: with one, the
+            // accumulators went to the stack after every product.
+            assert!(active.rows().iter().all(|&i| (i as usize) < x.len()) && wt.len() >= x.len() * OUT, "rows inside the weights");
             for &i in active.rows() {
-                let (xi, w_row) = (&x[i as usize], &wt[i as usize * OUT..(i as usize + 1) * OUT]);
-                // SAFETY: `xi` is 16 f32.
-                let xv = unsafe { _mm512_loadu_ps(xi.as_ptr()) };
-                let w: &[f32; BLOCK] = w_row[o0..o0 + BLOCK].try_into().expect("block inside the row");
-                for j in 0..BLOCK {
-                    acc[j] = _mm512_fmadd_ps(_mm512_set1_ps(w[j]), xv, acc[j]);
+                // SAFETY: `i < x.len()` and `(i + 1) · OUT ≤ wt.len()` (asserted above);
+                // `x[i]` is 16 f32 and `o0 + BLOCK ≤ OUT`.
+                unsafe {
+                    let xv = _mm512_loadu_ps(x.get_unchecked(i as usize).as_ptr());
+                    let w = wt.as_ptr().add(i as usize * OUT + o0);
+                    for j in 0..BLOCK {
+                        acc[j] = _mm512_fmadd_ps(_mm512_set1_ps(*w.add(j)), xv, acc[j]);
+                    }
                 }
             }
             for (j, a) in acc.iter().enumerate() {
