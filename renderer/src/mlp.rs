@@ -389,8 +389,8 @@ pub mod simd {
                 unsafe {
                     let xv = _mm512_loadu_ps(x.get_unchecked(i as usize).as_ptr());
                     let w = wt.as_ptr().add(i as usize * OUT + o0);
-                    for j in 0..BLOCK {
-                        acc[j] = _mm512_fmadd_ps(_mm512_set1_ps(*w.add(j)), xv, acc[j]);
+                    for (j, a) in acc.iter_mut().enumerate() {
+                        *a = _mm512_fmadd_ps(_mm512_set1_ps(*w.add(j)), xv, *a);
                     }
                 }
             }
