@@ -49,7 +49,7 @@ use crate::{
     camera::RayFrame,
     cubes::TextureCubes,
     mlp::{MAX_INPUT, MlpKernel, TILE, TileInput},
-    model::{HitRule, MAX_SEGMENTS, MarchHit, MultiHit, RenderSettings, Segment, Segments, Tracker, clip_ray},
+    model::{HitRule, MAX_SEGMENTS, MarchHit, MultiHit, RenderSettings, Segment, Segments, Tracker, clip_ray, closed_slot},
     psh::{self, SpatialHash},
     render::{Backend, CancelFlag, Frame, PreparedAsset, RenderError, RenderOutput, RenderStats, ViewRequest, check_request, to_unorm8},
     sh::sh4,
@@ -1452,22 +1452,15 @@ mod v3 {
     }
 
     impl Closed {
-        /// Files `run` among lane `l`'s closed segments as [`Segments::close_run`] does (a free
-        /// slot, or when full the lightest slot that is not the primary, the first of equals,
-        /// if it is lighter or `run` is the primary); `v4::close16` does the same on 16 lanes.
+        /// Files `run` among lane `l`'s closed segments as [`Segments::close_run`] does (by
+        /// [`closed_slot`]); `v4::close16` does the same on 16 lanes.
         pub(super) fn push(&mut self, l: usize, run: Segment, is_primary: bool) {
             if is_primary {
                 self.primary[l] = -1;
             }
             let n = self.count[l] as usize;
-            let slot = if n < MAX_SEGMENTS {
-                self.count[l] += 1;
-                Some(n)
-            } else {
-                let lightest = (0..MAX_SEGMENTS).filter(|&s| s as i32 != self.primary[l]).min_by(|&a, &b| self.weight[a][l].total_cmp(&self.weight[b][l])).expect("at most one primary");
-                (is_primary || self.weight[lightest][l] < run.weight).then_some(lightest)
-            };
-            if let Some(s) = slot {
+            if let Some(s) = closed_slot(n, usize::try_from(self.primary[l]).ok(), is_primary, run.weight, |s| self.weight[s][l]) {
+                self.count[l] = self.count[l].max(s as i32 + 1);
                 (self.weight[s][l], self.peak_w[s][l], self.peak_t[s][l], self.first_t[s][l], self.last_t[s][l]) = (run.weight, run.peak_w, run.peak_t, run.first_t, run.last_t);
                 if is_primary {
                     self.primary[l] = s as i32;
@@ -2381,7 +2374,7 @@ mod v4 {
     }
 
     /// Files the open runs of lanes `closing` (bits of lanes `at..at + 16`) among their rays'
-    /// closed segments as [`Closed::push`] does one lane at a time, and clears their runs'
+    /// closed segments as [`Closed::push`] does one lane at a time (by [`closed_slot`]), and clears their runs'
     /// primary flags. (0.96–0.99 of the time per lego frame of the loop over the closing lanes;
     /// on AVX2 the same in 8 lanes was 3–7% slower than the loop, which `v3` keeps.)
     ///
@@ -2994,7 +2987,7 @@ mod tests {
         let mut runs = Runs::default();
         let (mut filed, mut finished) = (0, 0);
         for round in 0..4000 {
-            let at = if round % 2 == 0 { 0 } else { 16 };
+            let at = 16 * (round % (LANES / 16));
             let closing = rng.random::<u16>() & rng.random::<u16>();
             for lane in at..at + 16 {
                 let weight = [0.05, 0.1, 0.2, 0.4][rng.random_range(0..4)];
@@ -3012,7 +3005,7 @@ mod tests {
             }
             if wide {
                 #[allow(unsafe_code)]
-                // SAFETY: the CPU has AVX-512 (checked above); lanes `at..at + 16` of 32.
+                // SAFETY: the CPU has AVX-512 (checked above); lanes `at..at + 16` of `LANES`.
                 unsafe { v4::close16(&mut runs, &mut vector, at, closing) };
                 for bit in 0..16 {
                     assert!(closing >> bit & 1 == 0 || runs.primary[at + bit] == 0, "a filed run's primary flag is cleared");

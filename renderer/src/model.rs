@@ -177,6 +177,19 @@ pub struct Segment {
     pub last_t: f32,
 }
 
+/// Where a closing segment of weight `weight` goes among `n` closed ones (`weight_of(i)`;
+/// `primary`: the one holding the ray's heaviest sample, already cleared if the closing one
+/// takes that role): slot `n` while there is room, else the lightest that is not the primary
+/// (the first of equals) if it is lighter or the closing one `is_primary`; `None`: dropped.
+/// [`Segments`] and the fast renderer's vectors of closed segments both file by it.
+pub fn closed_slot(n: usize, primary: Option<usize>, is_primary: bool, weight: f32, weight_of: impl Fn(usize) -> f32) -> Option<usize> {
+    if n < MAX_SEGMENTS {
+        return Some(n);
+    }
+    let lightest = (0..MAX_SEGMENTS).filter(|&i| Some(i) != primary).min_by(|&a, &b| weight_of(a).total_cmp(&weight_of(b))).expect("at most one primary");
+    (is_primary || weight_of(lightest) < weight).then_some(lightest)
+}
+
 /// The segment tracker of the multi-hit rule: at most [`MAX_SEGMENTS`] closed segments (when
 /// full, the lightest one that is not the primary gives way), the open one, and which one
 /// holds the max-weight sample.
@@ -215,14 +228,9 @@ impl Segments {
     /// Adds a closed segment: a free slot, or (full) the lightest closed one that is not the
     /// primary gives way, if it is lighter (or `seg` is the primary).
     fn push_closed(&mut self, seg: Segment, is_primary: bool) {
-        let slot = if self.n_closed < MAX_SEGMENTS {
-            self.n_closed += 1;
-            Some(self.n_closed - 1)
-        } else {
-            let lightest = (0..MAX_SEGMENTS).filter(|&i| Some(i) != self.primary).min_by(|&a, &b| self.closed[a].weight.total_cmp(&self.closed[b].weight)).expect("at most one primary");
-            (is_primary || self.closed[lightest].weight < seg.weight).then_some(lightest)
-        };
+        let slot = closed_slot(self.n_closed, self.primary, is_primary, seg.weight, |i| self.closed[i].weight);
         if let Some(i) = slot {
+            self.n_closed = self.n_closed.max(i + 1);
             self.closed[i] = seg;
             if is_primary {
                 self.primary = Some(i);
