@@ -87,6 +87,15 @@ pub struct MarchMeta {
     /// Which parts of a ray's weight get a network query (absent in older assets: one hit).
     #[serde(default)]
     pub hits: crate::model::HitRule,
+    /// The march stops once transmittance falls below this: the threshold the asset was
+    /// trained with, so its coarse opacities are the ones its network learnt (absent in older
+    /// assets: [`crate::model::DEFAULT_EARLY_STOP`]).
+    #[serde(default = "default_early_stop")]
+    pub early_stop: f32,
+}
+
+fn default_early_stop() -> f32 {
+    crate::model::DEFAULT_EARLY_STOP
 }
 
 /// The `nolf` JSON in the safetensors header (followed there by the tensor checksums).
@@ -334,6 +343,9 @@ impl Asset {
         }
         if !(0.0..1.0).contains(&m.alpha_min) {
             return Err(invalid(format!("alpha_min {} outside [0, 1)", m.alpha_min)));
+        }
+        if !(0.0..1.0).contains(&m.early_stop) {
+            return Err(invalid(format!("early_stop {} outside [0, 1)", m.early_stop)));
         }
         m.hits.validate().map_err(invalid)?;
         for (cubes, what, channels) in [(&self.density, "density", 1), (&self.diffuse, "diffuse", 4)] {

@@ -493,7 +493,7 @@ impl Scan {
             }
             tracker.sample(t, w, new_max);
             transmittance *= 1.0 - alpha;
-            if transmittance < s.stop_ratio * w_max || transmittance < s.early_stop {
+            if transmittance < s.stop_ratio * w_max || transmittance < s.stop_below() {
                 self.done = true;
                 break;
             }
@@ -870,6 +870,7 @@ impl PreparedAsset for FastPrepared {
     fn render_cancellable(&self, views: &[ViewRequest], settings: &RenderSettings, cancel: &CancelFlag) -> Result<RenderOutput, RenderError> {
         check_request(views, settings)?;
         let asset = &*self.asset;
+        let settings = &settings.for_asset(&asset.march);
         let start = Instant::now();
         let rays: Vec<RayFrame> = views.iter().map(|v| RayFrame::new(&v.view, &v.instance, asset.bounds.center(), asset.bounds.radius())).collect();
         let mut frames: Vec<Frame> = rays
@@ -1860,7 +1861,7 @@ mod v3 {
             _mm256_storeu_ps(wave.transmittance.as_mut_ptr().add(at), transmittance);
             let stop = _mm256_or_ps(
                 _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_mul_ps(_mm256_set1_ps(s.stop_ratio), w_max)),
-                _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_set1_ps(s.early_stop)),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(transmittance, _mm256_set1_ps(s.stop_below())),
             );
             let samples = _mm256_sub_epi32(_mm256_loadu_si256(wave.samples.as_ptr().add(at).cast()), _mm256_castps_si256(nonzero));
             _mm256_storeu_si256(wave.samples.as_mut_ptr().add(at).cast(), samples);
@@ -2442,7 +2443,7 @@ mod v4 {
             let transmittance = _mm512_mul_ps(transmittance, _mm512_sub_ps(one, alpha));
             st(&mut wave.transmittance, transmittance);
             let stop = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(transmittance, _mm512_mul_ps(_mm512_set1_ps(s.stop_ratio), w_max))
-                | _mm512_cmp_ps_mask::<_CMP_LT_OQ>(transmittance, _mm512_set1_ps(s.early_stop));
+                | _mm512_cmp_ps_mask::<_CMP_LT_OQ>(transmittance, _mm512_set1_ps(s.stop_below()));
             let samples = _mm512_loadu_si512(wave.samples.as_ptr().add(at).cast());
             _mm512_storeu_si512(wave.samples.as_mut_ptr().add(at).cast(), _mm512_mask_add_epi32(samples, nonzero, samples, _mm512_set1_epi32(1)));
             if MULTI {

@@ -23,12 +23,15 @@
 
 use glam::{IVec3, Vec3};
 
-use crate::{asset::Asset, cubes::Aabb, cubes::TextureCubes, mlp::sigmoid, sh::sh4};
+use crate::{asset::{Asset, MarchMeta}, cubes::Aabb, cubes::TextureCubes, mlp::sigmoid, sh::sh4};
 
 /// Stand-in for infinity that survives GPU fast-math (WGSL does not promise IEEE infinities).
 pub const BIG: f32 = 1e30;
 /// Direction components smaller than this count as zero.
 pub const TINY_DIR: f32 = 1e-12;
+
+/// The early stop of assets that name none (every asset made before December 2026).
+pub const DEFAULT_EARLY_STOP: f32 = 1e-3;
 
 /// Runtime knobs users trade speed against accuracy with.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -38,8 +41,10 @@ pub struct RenderSettings {
     /// Also stop marching when `T < stop_ratio · w_max`: any value ≤ 1 keeps the hit point
     /// exact (no later weight can exceed `T`) but leaves `α_c` short by up to `T`; 0 disables it.
     pub stop_ratio: f32,
-    /// Stop marching when `T < early_stop` (bounds the error of `α_c`).
-    pub early_stop: f32,
+    /// Stop marching when `T < early_stop` (bounds the error of `α_c`); `None` uses the
+    /// asset's own threshold, the one it was trained with ([`MarchMeta::early_stop`]).
+    #[serde(default)]
+    pub early_stop: Option<f32>,
     /// Miss threshold on `α_c`; `None` uses the asset's.
     pub alpha_min: Option<f32>,
     /// Multi-hit threshold τ and most queries per ray; `None` uses the asset's.
@@ -51,7 +56,7 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        Self { step_scale: 1.0, stop_ratio: 0.0, early_stop: 1e-3, alpha_min: None, hit_tau: None, max_hits: None }
+        Self { step_scale: 1.0, stop_ratio: 0.0, early_stop: None, alpha_min: None, hit_tau: None, max_hits: None }
     }
 }
 
@@ -60,11 +65,24 @@ impl RenderSettings {
         let ok = self.step_scale.is_finite()
             && (0.05..=20.0).contains(&self.step_scale)
             && (0.0..=1.0).contains(&self.stop_ratio)
-            && (0.0..1.0).contains(&self.early_stop)
+            && self.early_stop.is_none_or(|e| (0.0..1.0).contains(&e))
             && self.alpha_min.is_none_or(|a| (0.0..1.0).contains(&a))
             && self.hit_tau.is_none_or(|t| (0.0..=1.0).contains(&t))
             && self.max_hits.is_none_or(|m| (1..=MAX_HITS as u32).contains(&m));
         if ok { Ok(()) } else { Err(format!("render settings out of range: {self:?}")) }
+    }
+
+    /// These settings with the asset's own early stop where they name none: what every
+    /// backend marches with.
+    pub fn for_asset(&self, march: &MarchMeta) -> Self {
+        Self { early_stop: Some(self.early_stop.unwrap_or(march.early_stop)), ..*self }
+    }
+
+    /// The march's stop threshold on transmittance (settings not yet made
+    /// [`for_asset`](Self::for_asset): [`DEFAULT_EARLY_STOP`]).
+    #[inline(always)]
+    pub fn stop_below(&self) -> f32 {
+        self.early_stop.unwrap_or(DEFAULT_EARLY_STOP)
     }
 
     /// The asset's hit rule with this render's overrides.
@@ -409,7 +427,7 @@ pub fn march_with<T: Tracker>(density: &TextureCubes, o: Vec3, d: Vec3, step: f3
                 tracker.sample(t, w, new_max);
                 transmittance *= 1.0 - alpha;
                 samples += 1;
-                if transmittance < s.stop_ratio * w_max || transmittance < s.early_stop {
+                if transmittance < s.stop_ratio * w_max || transmittance < s.stop_below() {
                     break 'cells;
                 }
             }

@@ -278,7 +278,7 @@ pub fn generate(cfg: &ProceduralConfig) -> Result<Asset, PshError> {
     Ok(Asset {
         name: format!("procedural-{:?}", cfg.scene).to_lowercase(),
         bounds,
-        march: MarchMeta { step, alpha_min: 0.02, hits: Default::default() },
+        march: MarchMeta { step, alpha_min: 0.02, hits: Default::default(), early_stop: crate::model::DEFAULT_EARLY_STOP },
         density,
         diffuse,
         psh,

@@ -211,6 +211,7 @@ impl PreparedAsset for CpuPrepared {
     fn render_cancellable(&self, views: &[ViewRequest], settings: &RenderSettings, cancel: &CancelFlag) -> Result<RenderOutput, RenderError> {
         check_request(views, settings)?;
         let asset = &*self.0;
+        let settings = &settings.for_asset(&asset.march);
         let step = asset.march.step * settings.step_scale;
         let alpha_min = settings.alpha_min.unwrap_or(asset.march.alpha_min);
         let start = Instant::now();

@@ -116,6 +116,22 @@ fn wrong_version_and_hostile_sizes_are_clear_errors() {
     assert!(err.to_string().contains("/nonexistent/x.nolf"));
 }
 
+/// The march's early stop travels with the asset; assets without one (made before it was an
+/// asset setting) load with the old default, and an absurd one is a clear error.
+#[test]
+fn early_stop_is_saved_defaulted_and_checked() {
+    let mut a = tiny();
+    a.march.early_stop = 0.03;
+    assert_eq!(Asset::from_bytes(&a.to_bytes().unwrap()).unwrap().march.early_stop, 0.03);
+    let bytes = tiny().to_bytes().unwrap();
+    let legacy = Asset::from_bytes(&forge(&bytes, |m| _ = m["march"].as_object_mut().unwrap().remove("early_stop"))).unwrap();
+    assert_eq!(legacy.march.early_stop, nephele_renderer::model::DEFAULT_EARLY_STOP);
+    for bad in [serde_json::json!(1.0), serde_json::json!(-0.1)] {
+        let err = Asset::from_bytes(&forge(&bytes, |m| m["march"]["early_stop"] = bad.clone())).unwrap_err();
+        assert!(err.to_string().contains("early_stop"), "{bad}: {err}");
+    }
+}
+
 #[test]
 fn memory_report_compares_with_dense_grids() {
     let a = common::fixture();

@@ -53,6 +53,30 @@ fn lego_matches_the_reference_one_hit_and_multi_hit() {
     agree("multi-hit τ 0.05", &asset, &views, &RenderSettings { hit_tau: Some(0.05), max_hits: Some(3), ..Default::default() });
     agree("half step", &asset, &views[..1], &RenderSettings { step_scale: 0.5, ..one_hit });
     agree("double step, stop ratio", &asset, &views[..1], &RenderSettings { step_scale: 2.0, stop_ratio: 0.5, ..one_hit });
+    agree("early stop 0.05", &asset, &views, &RenderSettings { early_stop: Some(0.05), ..Default::default() });
+}
+
+/// An asset's own early stop (the threshold it was trained with) is what both CPU backends
+/// march with unless the settings name one: the same frames to the bit as naming it, and
+/// not those of another threshold.
+#[test]
+fn the_assets_early_stop_is_the_default() {
+    let asset = lego();
+    let mut stopping = (*asset).clone();
+    stopping.march.early_stop = 0.05;
+    let stopping = Arc::new(stopping);
+    let views = [orbit(96, 72, 35.0, 25.0, 4.0)];
+    let named = RenderSettings { early_stop: Some(0.05), ..Default::default() };
+    let fast = |a: &Arc<Asset>| FastCpuBackend.prepare(a.clone()).unwrap();
+    let reference = |a: &Arc<Asset>| CpuBackend.prepare(a.clone()).unwrap();
+    for (what, b) in [("fast", fast as fn(&Arc<Asset>) -> Box<dyn nephele_renderer::PreparedAsset>), ("reference", reference)] {
+        let own = b(&stopping).render(&views, &RenderSettings::default()).unwrap();
+        let asked = b(&asset).render(&views, &named).unwrap();
+        let usual = b(&asset).render(&views, &RenderSettings::default()).unwrap();
+        assert!(own.frames[0] == asked.frames[0], "{what}: the asset's early stop is not the default");
+        assert!(own.frames[0].rgba != usual.frames[0].rgba, "{what}: an early stop of 0.05 changed nothing");
+        assert!(own.stats.samples < usual.stats.samples, "{what}: {:?} vs {:?}", own.stats, usual.stats);
+    }
 }
 
 /// The 8-bit hidden layer ([`Network::Int8`]) rounds each query's hidden values to 1/255 of

@@ -100,6 +100,7 @@ fn settings_knobs_reach_the_gpu() {
         RenderSettings { step_scale: 2.0, ..Default::default() },
         RenderSettings { stop_ratio: 1.0, ..Default::default() },
         RenderSettings { alpha_min: Some(0.5), ..Default::default() },
+        RenderSettings { early_stop: Some(0.05), ..Default::default() },
         RenderSettings { hit_tau: Some(0.02), max_hits: Some(3), ..Default::default() },
         RenderSettings { hit_tau: Some(0.02), max_hits: Some(2), step_scale: 0.5, ..Default::default() },
     ] {
@@ -107,6 +108,15 @@ fn settings_knobs_reach_the_gpu() {
         let g = gpu.prepare(asset.clone()).unwrap().render(&view, &settings).unwrap();
         check(&format!("{settings:?}"), &common::diff(&c.frames[0], &g.frames[0], 4, 2.0 * asset.march.step * settings.step_scale));
     }
+    // The asset's own early stop, where the settings name none.
+    let mut stopping = (*asset).clone();
+    stopping.march.early_stop = 0.05;
+    let stopping = std::sync::Arc::new(stopping);
+    let c = CpuBackend.prepare(stopping.clone()).unwrap().render(&view, &RenderSettings::default()).unwrap();
+    let g = gpu.prepare(stopping.clone()).unwrap().render(&view, &RenderSettings::default()).unwrap();
+    check("the asset's early stop", &common::diff(&c.frames[0], &g.frames[0], 4, 2.0 * asset.march.step));
+    let named = CpuBackend.prepare(asset.clone()).unwrap().render(&view, &RenderSettings { early_stop: Some(0.05), ..Default::default() }).unwrap();
+    assert!(c.frames[0] == named.frames[0], "the reference ignores the asset's early stop");
 }
 
 /// Buffers are reused between renders: a small batch after a large one, and a larger one

@@ -106,6 +106,11 @@ pub struct DistillConfig {
     /// ([`model::HitRule`]; absent in older checkpoints: one hit).
     #[serde(default)]
     pub hits: model::HitRule,
+    /// The march's stop on transmittance the student is trained with and the asset renders
+    /// with ([`nephele_renderer::asset::MarchMeta::early_stop`]; absent in older checkpoints:
+    /// [`model::DEFAULT_EARLY_STOP`]).
+    #[serde(default = "default_early_stop")]
+    pub early_stop: f32,
     /// Views rendered by the teacher from new camera positions, added to the training images
     /// for stages 2–4 ([`with_teacher_views`]); 0: the captured images only.
     #[serde(default)]
@@ -170,6 +175,7 @@ impl DistillConfig {
             // Adaptive multi-hit: a second (third) query where ≥ 10% of a ray's weight lies
             // in another segment: +0.83 dB on lego at 1.29 queries per hit ray.
             hits: model::HitRule { tau: 0.1, max_hits: 3, gap_steps: 3.0 },
+            early_stop: model::DEFAULT_EARLY_STOP,
             teacher_views: 0,
             teacher_query_weight: 0.0,
             steps,
@@ -225,8 +231,8 @@ impl DistillConfig {
             return Err(format!("PSH grid {} / features {} / dilation {} out of range", self.psh_grid, self.psh_features, self.psh_dilation));
         }
         self.hits.validate()?;
-        if !(0.0..1.0).contains(&self.alpha_min) || !(0.0..1.0).contains(&self.min_step_opacity) {
-            return Err("alpha_min and min_step_opacity must be in [0, 1)".into());
+        if !(0.0..1.0).contains(&self.alpha_min) || !(0.0..1.0).contains(&self.min_step_opacity) || !(0.0..1.0).contains(&self.early_stop) {
+            return Err("alpha_min, min_step_opacity and early_stop must be in [0, 1)".into());
         }
         if !(1..=1 << 22).contains(&self.rays_per_batch) || !(1..=1 << 16).contains(&self.rays_per_chunk) || self.error_tile == 0 {
             return Err("batch, chunk or tile size out of range".into());
@@ -242,6 +248,14 @@ impl DistillConfig {
 
     /// March step δ for cubes over `bounds`: a fine density cell along the longest axis over
     /// `samples_per_cell`.
+    /// The early stop of the marches that choose the box and the bricks to keep: never later
+    /// than the renderer's default, so a larger [`Self::early_stop`] changes what the
+    /// student learns, not which surfaces the asset holds (new views may reach surfaces
+    /// that the training rays stopped short of).
+    pub fn geometry_early_stop(&self) -> f32 {
+        self.early_stop.min(model::DEFAULT_EARLY_STOP)
+    }
+
     pub fn hit_rule(&self) -> model::HitRule {
         self.hits
     }
@@ -255,6 +269,10 @@ fn yes() -> bool {
     true
 }
 
+fn default_early_stop() -> f32 {
+    model::DEFAULT_EARLY_STOP
+}
+
 /// The box to model: the object as the training images show it. Density cubes over the
 /// teacher's whole box are marched with every training ray; the box of the hits whose pixel
 /// is at least half opaque in the ground truth (its 0.05–99.95% quantiles per axis), grown by
@@ -264,7 +282,7 @@ fn yes() -> bool {
 pub fn fit_bounds(teacher: &Trainer, data: &Dataset, cfg: &DistillConfig) -> Option<Aabb> {
     let whole = teacher.config.bounds;
     let coarse = bake_density(teacher, whole, cfg);
-    let hits = march_rays(&coarse, cfg.step(&whole), cfg.alpha_min, &model::HitRule::default(), data, cfg.error_tile);
+    let hits = march_rays(&coarse, cfg.step(&whole), cfg.alpha_min, cfg.geometry_early_stop(), &model::HitRule::default(), data, cfg.error_tile);
     let has_alpha = data.images.iter().any(|im| im.rgba.chunks_exact(4).any(|p| p[3] < 0.5));
     let points: Vec<Vec3> = hits
         .rays
@@ -521,8 +539,8 @@ pub struct Hits {
 }
 
 /// Stage 2b: marches every pixel of every image through `density`.
-pub fn march_rays(density: &TextureCubes, step: f32, alpha_min: f32, rule: &model::HitRule, data: &Dataset, tile: u32) -> Hits {
-    let settings = RenderSettings::default();
+pub fn march_rays(density: &TextureCubes, step: f32, alpha_min: f32, early_stop: f32, rule: &model::HitRule, data: &Dataset, tile: u32) -> Hits {
+    let settings = RenderSettings { early_stop: Some(early_stop), ..Default::default() };
     let (w, h) = data.images.first().map_or((0, 0), |im| (im.width, im.height));
     let (tiles_x, tiles_y) = (w.div_ceil(tile), h.div_ceil(tile));
     let per_image: Vec<(Vec<HitRay>, Vec<usize>, usize)> = data
@@ -1134,12 +1152,12 @@ pub fn geometry(teacher: &Trainer, data: &Dataset, cfg: &DistillConfig) -> Resul
     let bounds = fit_bounds(teacher, data, cfg).ok_or("no training ray hits the field's density: nothing to model")?;
     let step = cfg.step(&bounds);
     let baked = bake_density(teacher, bounds, cfg);
-    let first = march_rays(&baked, step, cfg.alpha_min, &cfg.hits, data, cfg.error_tile);
+    let first = march_rays(&baked, step, cfg.alpha_min, cfg.geometry_early_stop(), &cfg.hits, data, cfg.error_tile);
     // Keep only bricks near surfaces the cameras reach, then march again with exactly the
-    // cubes that will be stored.
+    // cubes (and the early stop) that will be stored.
     let near = cell_mask(&baked, &marked_cells(&bounds, cfg.density_grid, 0, first.rays.iter().flat_map(HitRay::points), cfg.density_dilation));
     let density = baked.retain(|i, _| near[i]);
-    let hits = march_rays(&density, step, cfg.alpha_min, &cfg.hits, data, cfg.error_tile);
+    let hits = march_rays(&density, step, cfg.alpha_min, cfg.early_stop, &cfg.hits, data, cfg.error_tile);
     if hits.rays.is_empty() {
         return Err("no training ray hits the baked density: nothing to model".into());
     }
@@ -1307,7 +1325,7 @@ impl Distiller {
         Ok(Asset {
             name: name.to_string(),
             bounds: self.student.bounds,
-            march: MarchMeta { step, alpha_min: self.config.alpha_min, hits: self.config.hit_rule() },
+            march: MarchMeta { step, alpha_min: self.config.alpha_min, hits: self.config.hit_rule(), early_stop: self.config.early_stop },
             density,
             diffuse: self.bake_diffuse(),
             psh,
@@ -1401,6 +1419,7 @@ pub fn render_image(asset: &Asset, image: &crate::dataset::DatasetImage, backgro
 /// [`render_image`] with render knobs (step scale, hit rule, early stop).
 pub fn render_image_with(asset: &Asset, image: &crate::dataset::DatasetImage, background: Vec3, settings: &RenderSettings) -> Vec<f32> {
     let net = asset.mlp.kernel();
+    let settings = &settings.for_asset(&asset.march);
     let rule = settings.hit_rule(&asset.march.hits);
     let step = asset.march.step * settings.step_scale;
     let rays: Vec<(Vec3, Vec3)> = image.rays().collect();

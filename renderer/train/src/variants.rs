@@ -45,7 +45,7 @@ const WINDOW: usize = 32;
 
 /// Marches rays through the teacher's density network (see the module note).
 pub fn march_network(teacher: &Trainer, bounds: &Aabb, step: f32, rays: &[(Vec3, Vec3)]) -> Vec<MarchHit> {
-    let early_stop = RenderSettings::default().early_stop;
+    let early_stop = RenderSettings::default().stop_below();
     rays.par_chunks(64)
         .flat_map_iter(|chunk| {
             struct State {
@@ -159,11 +159,12 @@ pub fn render_cubes(
     diffuse: Option<&TextureCubes>,
     step: f32,
     alpha_min: f32,
+    early_stop: f32,
     rays: &[(Vec3, Vec3)],
     background: Vec3,
 ) -> VariantFrame {
     let start = Instant::now();
-    let settings = RenderSettings::default();
+    let settings = RenderSettings { early_stop: Some(early_stop), ..Default::default() };
     let marched: Vec<MarchHit> = rays.par_iter().map(|&(o, d)| model::march(density, o, d, step, &settings)).collect();
     let march_ms = start.elapsed().as_secs_f64() * 1e3;
     let (rgb, hits) = shade_student(student, diffuse, rays, &marched, alpha_min, background);
@@ -292,7 +293,7 @@ pub struct SwapFrames {
 /// teacher's colour at its heaviest sample for that query.
 pub fn render_swaps(teacher: &Trainer, asset: &nephele_renderer::Asset, rays: &[(Vec3, Vec3)], background: Vec3) -> SwapFrames {
     let net = asset.mlp.kernel();
-    let settings = RenderSettings::default();
+    let settings = RenderSettings::default().for_asset(&asset.march);
     let window = asset.march.hits.gap_steps * asset.march.step;
     let parts: Vec<[Vec<f32>; 4]> = rays
         .par_chunks(teacher.model().rays_per_chunk.max(1))
@@ -407,7 +408,7 @@ mod tests {
         let bg = Vec3::new(0.2, 0.5, 0.9);
         let teacher_pixels = teacher.render(&rays, bg);
         let frames = render_swaps(&teacher, &asset, &rays, bg);
-        let settings = RenderSettings::default();
+        let settings = RenderSettings::default().for_asset(&asset.march);
         let mut hit = 0;
         for (i, &(o, d)) in rays.iter().enumerate() {
             let m = model::march_multi(&asset.density, o, d, asset.march.step, &settings, &asset.march.hits);
@@ -461,7 +462,7 @@ mod tests {
                 let want = 1.0 - (-2.0 * step).exp().powi(n.samples as i32);
                 assert!((n.alpha_c - want).abs() < 1e-4, "{} vs {want}", n.alpha_c);
                 let all = ((t1 - t0) / step + 0.5).floor() as u32;
-                assert!(n.samples == all || n.samples + 1 == all || n.samples == all + 1 || n.alpha_c > 1.0 - settings.early_stop, "{} of {all} samples", n.samples);
+                assert!(n.samples == all || n.samples + 1 == all || n.samples == all + 1 || n.alpha_c > 1.0 - settings.stop_below(), "{} of {all} samples", n.samples);
             } else {
                 assert_eq!(n.alpha_c, 0.0);
             }

@@ -399,8 +399,8 @@ fn describe_rule(s: &RenderSettings) -> String {
     if let Some(m) = s.max_hits {
         parts.push(format!("≤ {m} hits"));
     }
-    if s.early_stop != d.early_stop {
-        parts.push(format!("early stop {}", s.early_stop));
+    if let Some(e) = s.early_stop {
+        parts.push(format!("early stop {e}"));
     }
     if parts.is_empty() { "default".into() } else { parts.join(", ") }
 }

@@ -99,9 +99,10 @@ pub struct RenderKnobs {
     pub max_hits: Option<u32>,
     /// Stop a ray's march once its transmittance falls below this (its coarse opacity is
     /// then within this of the whole ray's): larger is faster and less exact (`nephele bench
-    /// render` prints the PSNR against the default rule).
-    #[arg(long, default_value_t = nephele_renderer::RenderSettings::default().early_stop)]
-    pub early_stop: f32,
+    /// render` prints the PSNR against the default rule); default: the asset's own, the
+    /// threshold it was trained with.
+    #[arg(long)]
+    pub early_stop: Option<f32>,
 }
 
 impl RenderKnobs {
@@ -109,7 +110,7 @@ impl RenderKnobs {
         let s = nephele_renderer::RenderSettings { step_scale: self.step_scale, hit_tau: self.hit_tau, max_hits: self.max_hits, early_stop: self.early_stop, ..Default::default() };
         if s.validate().is_err() {
             anyhow::bail!(
-                "--step-scale must be in [0.05, 20], --hit-tau in [0, 1], --max-hits in 1..={} and --early-stop in [0, 1) (got {}, {:?}, {:?}, {})",
+                "--step-scale must be in [0.05, 20], --hit-tau in [0, 1], --max-hits in 1..={} and --early-stop in [0, 1) (got {}, {:?}, {:?}, {:?})",
                 nephele_renderer::model::MAX_HITS,
                 self.step_scale,
                 self.hit_tau,

@@ -197,6 +197,18 @@ pub fn generate(args: GenerateArgs) -> Result<()> {
 
 pub fn info(args: InfoArgs) -> Result<()> {
     let a = load_asset(&args.asset)?;
-    println!("name: {}\nbounds: {:?}\nstep: {}\nprovenance: {}\n\n{}", a.name, a.bounds, a.march.step, a.provenance, a.memory());
+    let m = &a.march;
+    println!(
+        "name: {}\nbounds: {:?}\nstep: {}\nmiss below α_c {}, early stop at T < {}, hits: τ {} and at most {} per ray\nprovenance: {}\n\n{}",
+        a.name,
+        a.bounds,
+        m.step,
+        m.alpha_min,
+        m.early_stop,
+        m.hits.tau,
+        m.hits.max_hits,
+        a.provenance,
+        a.memory()
+    );
     Ok(())
 }

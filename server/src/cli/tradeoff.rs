@@ -325,7 +325,7 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         match &v.shading {
             Shading::Ngp => variants::render_ngp(&teacher, rays, Vec3::ONE),
             Shading::Base(s) => variants::render_base(&teacher, s, step, alpha_min, rays, Vec3::ONE),
-            Shading::Cubes(s, diffuse) => variants::render_cubes(s, &geometry.density, *diffuse, step, alpha_min, rays, Vec3::ONE),
+            Shading::Cubes(s, diffuse) => variants::render_cubes(s, &geometry.density, *diffuse, step, alpha_min, base_cfg.early_stop, rays, Vec3::ONE),
             Shading::Asset(_) => unreachable!("assets render on the backend"),
         }
     };

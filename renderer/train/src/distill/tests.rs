@@ -340,7 +340,7 @@ fn pipeline() -> &'static Pipeline {
         let asset_psnr = score(&|im| render_image(&asset, im, Vec3::ONE));
         let mlp_psnr = score(&|im| {
             let rays: Vec<(Vec3, Vec3)> = im.rays().collect();
-            crate::variants::render_cubes(&distiller.student, &asset.density, None, step, asset.march.alpha_min, &rays, Vec3::ONE).rgb
+            crate::variants::render_cubes(&distiller.student, &asset.density, None, step, asset.march.alpha_min, asset.march.early_stop, &rays, Vec3::ONE).rgb
         });
         let train_psnr = train.images.iter().map(|im| psnr(&im.composite_over(Vec3::ONE), &render_image(&asset, im, Vec3::ONE))).sum::<f64>() / train.images.len() as f64;
         println!(
@@ -350,6 +350,24 @@ fn pipeline() -> &'static Pipeline {
         );
         Pipeline { teacher_psnr, asset_psnr, mlp_psnr, geometry_counts, first_psnr: mean(&stats[..30]), last_psnr: mean(&stats[stats.len() - 30..]), asset }
     })
+}
+
+/// The early stop a student is trained with: saved in checkpoints (older ones without it
+/// read as the renderer's default), checked, never later than the default for the marches
+/// that choose the asset's bricks, and written into the asset it bakes.
+#[test]
+fn early_stop_is_a_checked_training_setting() {
+    let cfg = DistillConfig { early_stop: 0.1, ..DistillConfig::tiny(10) };
+    assert!(cfg.validate().is_ok());
+    assert_eq!(cfg.geometry_early_stop(), nephele_renderer::model::DEFAULT_EARLY_STOP);
+    let mut json = serde_json::to_value(&cfg).unwrap();
+    assert_eq!(serde_json::from_value::<DistillConfig>(json.clone()).unwrap().early_stop, 0.1);
+    json.as_object_mut().unwrap().remove("early_stop");
+    assert_eq!(serde_json::from_value::<DistillConfig>(json).unwrap().early_stop, nephele_renderer::model::DEFAULT_EARLY_STOP);
+    for bad in [1.0, -0.01, f32::NAN] {
+        assert!(DistillConfig { early_stop: bad, ..cfg.clone() }.validate().is_err(), "{bad}");
+    }
+    assert_eq!(pipeline().asset.march.early_stop, DistillConfig::tiny(STUDENT_STEPS).early_stop);
 }
 
 #[test]
