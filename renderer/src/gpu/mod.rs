@@ -445,6 +445,7 @@ impl PreparedAsset for GpuPrepared {
         let ctx = &*self.ctx;
         let dev = &ctx.device;
         let a = &*self.asset;
+        let settings = &settings.for_asset(&a.march);
         let rule = settings.hit_rule(&a.march.hits);
         let start = Instant::now();
         let mut gpu_views = Vec::with_capacity(views.len());
@@ -491,7 +492,7 @@ impl PreparedAsset for GpuPrepared {
                 step: a.march.step * settings.step_scale,
                 alpha_min: settings.alpha_min.unwrap_or(a.march.alpha_min),
                 stop_ratio: settings.stop_ratio,
-                early_stop: settings.early_stop.unwrap_or(a.march.early_stop),
+                early_stop: settings.stop_below(),
                 hit_tau: rule.tau,
                 max_hits: if rule.one_hit() { 1 } else { rule.max_hits },
                 hit_gap: rule.gap_steps * a.march.step * settings.step_scale,

@@ -246,8 +246,6 @@ impl DistillConfig {
         Ok(())
     }
 
-    /// March step δ for cubes over `bounds`: a fine density cell along the longest axis over
-    /// `samples_per_cell`.
     /// The early stop of the marches that choose the box and the bricks to keep: never later
     /// than the renderer's default, so a larger [`Self::early_stop`] changes what the
     /// student learns, not which surfaces the asset holds (new views may reach surfaces
@@ -256,10 +254,13 @@ impl DistillConfig {
         self.early_stop.min(model::DEFAULT_EARLY_STOP)
     }
 
+    /// The multi-hit rule the student is trained for.
     pub fn hit_rule(&self) -> model::HitRule {
         self.hits
     }
 
+    /// March step δ for cubes over `bounds`: a fine density cell along the longest axis over
+    /// `samples_per_cell`.
     pub fn step(&self, bounds: &Aabb) -> f32 {
         bounds.size().max_element() / ((self.density_grid * self.density_brick) as f32 * self.samples_per_cell)
     }
