@@ -469,9 +469,11 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
     let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" }, if psnr { "---:|" } else { "" });
     for r in rows {
         let hits = (r.hit_fraction * (r.width as f64 * r.height as f64)).max(1.0);
+        // Backends that count no samples or queries (the GPU's) get dashes, not zeros.
+        let counted = r.samples_per_ray > 0.0 || r.queries > 0;
         let _ = write!(
             out,
-            "| {} |{} {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} | {:.1} | {:.2} |",
+            "| {} |{} {}×{} | {:.1} | {:.1} | {:.1} | {:.2} | {:.3} | {} | {} |",
             r.backend,
             if rules { format!(" {} |", r.rule) } else { String::new() },
             r.width,
@@ -481,14 +483,18 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
             r.total_ms,
             r.rays_per_s / 1e6,
             r.hit_fraction,
-            r.samples_per_ray,
-            r.queries as f64 / hits
+            if counted { format!("{:.1}", r.samples_per_ray) } else { "–".into() },
+            if counted { format!("{:.2}", r.queries as f64 / hits) } else { "–".into() }
         );
         if let Some(peak) = peak_gflops {
             let gflop = 2.0 * (r.queries * r.macs_per_query) as f64 / 1e9;
-            let rate = gflop / (r.shade_ms / 1e3).max(1e-9);
-            let floor_ms = gflop / peak * 1e3;
-            let _ = write!(out, " {rate:.1} | {:.1}% | {floor_ms:.2} | {:.1}× |", 100.0 * rate / peak, r.total_ms / floor_ms.max(1e-9));
+            if gflop > 0.0 {
+                let rate = gflop / (r.shade_ms / 1e3).max(1e-9);
+                let floor_ms = gflop / peak * 1e3;
+                let _ = write!(out, " {rate:.1} | {:.1}% | {floor_ms:.2} | {:.1}× |", 100.0 * rate / peak, r.total_ms / floor_ms);
+            } else {
+                let _ = write!(out, " – | – | – | – |");
+            }
         }
         if psnr {
             let _ = write!(out, " {} |", r.psnr_vs_first.map_or("–".into(), |p| if p.is_infinite() { "∞ (same frame)".into() } else { format!("{p:.1}") }));
@@ -496,4 +502,37 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
         let _ = writeln!(out);
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(backend: &str, queries: u64, samples_per_ray: f64) -> RenderBenchRow {
+        RenderBenchRow {
+            backend: backend.into(),
+            rule: "default".into(),
+            width: 64,
+            height: 48,
+            march_ms: 2.0,
+            shade_ms: 1.0,
+            total_ms: 3.0,
+            rays_per_s: 1e6,
+            hit_fraction: 0.5,
+            queries,
+            macs_per_query: 6000,
+            samples_per_ray,
+            psnr_vs_first: None,
+        }
+    }
+
+    #[test]
+    fn uncounted_columns_are_dashes_not_zeros() {
+        let table = format_table_with_peak(&[row("cpu", 2000, 4.0), row("wgpu", 0, 0.0)], Some(100.0));
+        let cpu = table.lines().find(|l| l.starts_with("| cpu |")).unwrap();
+        let gpu = table.lines().find(|l| l.starts_with("| wgpu |")).unwrap();
+        // 2000 queries × 6000 MACs × 2 = 0.024 GFLOP: 0.24 ms at 100 GFLOP/s, 3 ms is 12.5×.
+        assert!(cpu.ends_with("| 4.0 | 1.30 | 24.0 | 24.0% | 0.24 | 12.5× |"), "{cpu}");
+        assert!(gpu.ends_with("| – | – | – | – | – | – |"), "{gpu}");
+    }
 }
