@@ -26,7 +26,8 @@
 //!   against the reference in the tests and in `bench render`.
 //! - **The network in tiles.** Each band of rows is marched, its queries gathered, and then
 //!   shaded [`TILE`] at a time: inputs written feature-major (hash corners and 8-bit
-//!   diffuse corners gathered 8 queries at a time with AVX2), the MLP run as
+//!   diffuse corners gathered 8 queries at a time with AVX2, or read lane by lane where the
+//!   march is the AVX2 one, on CPUs without AVX-512, whose gathers are slow), the MLP run as
 //!   register-blocked matrix products ([`MlpKernel::forward_tile`], AVX-512 or AVX2 + FMA
 //!   at run time, skipping hidden units that are zero for the whole tile), the view inputs
 //!   and the sigmoids and compositing 8 queries at a time too (0.938–0.945 of the time per
@@ -1063,8 +1064,11 @@ impl FastPrepared {
                 #[cfg(target_arch = "x86_64")]
                 #[allow(unsafe_code)]
                 // SAFETY: `V` is true only where the CPU has x86-64-v3 (see `sigmas`).
+                // The AVX2 march runs where the CPU has no AVX-512, and such CPUs' gathers
+                // are slow (Zen 3: 0.979–0.985 of the time per lego frame at 352×264,
+                // 0.986–0.995 at 640×480, 1.0 at 1280×720 with the reads lane by lane).
                 unsafe {
-                    v3::tile_inputs(&self.hash, psh, self.diffuse.as_ref().expect("checked above"), &asset.diffuse, &p, &mut x, &mut diffuse)
+                    v3::tile_inputs(&self.hash, psh, self.diffuse.as_ref().expect("checked above"), &asset.diffuse, &p, &mut x, &mut diffuse, self.march == March::Avx2)
                 };
             } else {
                 self.tile_inputs_scalar(tile, &mut x, &mut diffuse);
@@ -1236,15 +1240,35 @@ mod v3 {
         (sigma, out, nonzero)
     }
 
+    /// The `i32`s at `base[at[lane]]`, read one lane at a time: on Zen 3, 8 loads and inserts
+    /// take ~0.6 of a `vpgatherdd`'s time (microbenchmark).
+    ///
+    /// # Safety
+    /// Every lane of `at` indexes the slice `base` points into.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn read8(base: *const i32, at: __m256i) -> __m256i {
+        let mut lanes = [0i32; 8];
+        unsafe { _mm256_storeu_si256(lanes.as_mut_ptr().cast(), at) };
+        // SAFETY: the caller's guarantee.
+        let rd = |l: usize| unsafe { *base.add(lanes[l] as usize) };
+        let low = _mm_insert_epi32::<3>(_mm_insert_epi32::<2>(_mm_insert_epi32::<1>(_mm_cvtsi32_si128(rd(0)), rd(1)), rd(2)), rd(3));
+        let high = _mm_insert_epi32::<3>(_mm_insert_epi32::<2>(_mm_insert_epi32::<1>(_mm_cvtsi32_si128(rd(4)), rd(5)), rd(6)), rd(7));
+        _mm256_set_m128i(high, low)
+    }
+
     /// [`FastPrepared::tile_inputs_scalar`] for a whole tile in AVX2 registers, 8 queries at
     /// a time, from the query points `p[axis][lane]`: each query's 8 hash corners (brick
     /// table reads gathered; an absent corner reads the zero row) and its features summed in
     /// the scalar path's order (the same sums), and the 8-bit diffuse corners gathered and
     /// weighted as bytes, scaled by 1/255 once (within an ulp of the scalar path's per-corner
-    /// division). Needs `features` a multiple of 8.
+    /// division). Needs `features` a multiple of 8. `lane_reads`: read the index entries and
+    /// corners lane by lane instead of gathering them (for CPUs whose gathers are slow; the
+    /// same values).
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    pub(super) fn tile_inputs(hash: &PshBricks, psh: &SpatialHash, bytes: &DiffuseBytes, cubes: &TextureCubes, p: &[[f32; TILE]; 3], x: &mut TileInput, diffuse: &mut [[f32; TILE]; 4]) {
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn tile_inputs(hash: &PshBricks, psh: &SpatialHash, bytes: &DiffuseBytes, cubes: &TextureCubes, p: &[[f32; TILE]; 3], x: &mut TileInput, diffuse: &mut [[f32; TILE]; 4], lane_reads: bool) {
         use std::arch::x86_64::*;
         let nf = psh.features as usize;
         let zero_id = hash.zero_id(nf);
@@ -1259,6 +1283,10 @@ mod v3 {
                 && cubes.index.len() == (cubes.grid as usize).pow(3)
         );
         const EDGE: i32 = PshBricks::EDGE as i32;
+        // Lane reads also read the masked-off lanes (at brick 0), so they need a brick.
+        let lane_reads = lane_reads && hash.tables.len() >= (EDGE * EDGE * EDGE) as usize && !bytes.corners.is_empty();
+        // SAFETY (callers): every lane of `at` indexes `base`'s slice.
+        let read = |base: *const i32, at: __m256i| unsafe { if lane_reads { read8(base, at) } else { _mm256_i32gather_epi32::<4>(base, at) } };
         let mut ids = [[0u32; 8]; 8];
         let mut weights = [[0.0f32; 8]; 8];
         for half in 0..TILE / 8 {
@@ -1304,7 +1332,7 @@ mod v3 {
                 let g = _mm256_set1_epi32(hash.grid as i32);
                 let brick_of = |b: __m256i| _mm256_srli_epi32::<2>(b);
                 let brick_at = _mm256_add_epi32(brick_of(bx), _mm256_mullo_epi32(g, _mm256_add_epi32(brick_of(by), _mm256_mullo_epi32(g, brick_of(bz)))));
-                let brick = _mm256_i32gather_epi32::<4>(hash.index.as_ptr(), brick_at);
+                let brick = read(hash.index.as_ptr(), brick_at);
                 let live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
                 let e = _mm256_set1_epi32(EDGE);
                 let (lx, ly, lz) = (_mm256_and_si256(bx, low), _mm256_and_si256(by, low), _mm256_and_si256(bz, low));
@@ -1316,7 +1344,8 @@ mod v3 {
                 let zero_row = _mm256_set1_epi32(zero_id as i32);
                 for corner in 0..8i32 {
                     let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
-                    let id = _mm256_mask_i32gather_epi32::<4>(absent, hash.tables.as_ptr().cast(), _mm256_add_epi32(table0, _mm256_set1_epi32(dx + EDGE * (dy + EDGE * dz))), live);
+                    let at = _mm256_add_epi32(table0, _mm256_set1_epi32(dx + EDGE * (dy + EDGE * dz)));
+                    let id = if lane_reads { _mm256_blendv_epi8(absent, read(hash.tables.as_ptr().cast(), at), live) } else { _mm256_mask_i32gather_epi32::<4>(absent, hash.tables.as_ptr().cast(), at, live) };
                     let id = _mm256_blendv_epi8(id, zero_row, _mm256_cmpeq_epi32(id, absent));
                     _mm256_storeu_si256(ids[corner as usize].as_mut_ptr().cast(), id);
                     _mm256_storeu_ps(weights[corner as usize].as_mut_ptr(), w[corner as usize]);
@@ -1342,7 +1371,7 @@ mod v3 {
                 weights8(fx, fy, fz, &mut w);
                 let g = _mm256_set1_epi32(cubes.grid as i32);
                 let cell_at = _mm256_add_epi32(_mm256_cvttps_epi32(cx), _mm256_mullo_epi32(g, _mm256_add_epi32(_mm256_cvttps_epi32(cy), _mm256_mullo_epi32(g, _mm256_cvttps_epi32(cz)))));
-                let brick = _mm256_i32gather_epi32::<4>(cubes.index.as_ptr(), cell_at);
+                let brick = read(cubes.index.as_ptr(), cell_at);
                 let live = _mm256_cmpgt_epi32(brick, _mm256_set1_epi32(-1));
                 let e = cubes.brick as i32 + 1;
                 let ei = _mm256_set1_epi32(e);
@@ -1354,7 +1383,8 @@ mod v3 {
                 let mut acc = [zero; 4];
                 for corner in 0..8i32 {
                     let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
-                    let v = _mm256_mask_i32gather_epi32::<4>(_mm256_setzero_si256(), bytes.corners.as_ptr().cast(), _mm256_add_epi32(start, _mm256_set1_epi32(dx + e * (dy + e * dz))), live);
+                    let at = _mm256_add_epi32(start, _mm256_set1_epi32(dx + e * (dy + e * dz)));
+                    let v = if lane_reads { _mm256_and_si256(live, read(bytes.corners.as_ptr().cast(), at)) } else { _mm256_mask_i32gather_epi32::<4>(_mm256_setzero_si256(), bytes.corners.as_ptr().cast(), at, live) };
                     let wc = w[corner as usize];
                     acc[0] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(v, byte)), acc[0]);
                     acc[1] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32::<8>(v), byte)), acc[1]);
@@ -2756,11 +2786,15 @@ mod tests {
             let (mut xs, mut ds) = ([[0.0; TILE]; MAX_INPUT], [[0.0; TILE]; 4]);
             let (mut xv, mut dv) = ([[0.0; TILE]; MAX_INPUT], [[0.0; TILE]; 4]);
             prepared.tile_inputs_scalar(&tile, &mut xs, &mut ds);
+            // Gathered, and read lane by lane: the same values.
+            let (mut xl, mut dl) = ([[0.0; TILE]; MAX_INPUT], [[0.0; TILE]; 4]);
             // SAFETY: the CPU has x86-64-v3 (checked above).
             #[allow(unsafe_code)]
             unsafe {
-                v3::tile_inputs(&prepared.hash, &asset.psh, prepared.diffuse.as_ref().unwrap(), &asset.diffuse, &p, &mut xv, &mut dv)
+                v3::tile_inputs(&prepared.hash, &asset.psh, prepared.diffuse.as_ref().unwrap(), &asset.diffuse, &p, &mut xv, &mut dv, false);
+                v3::tile_inputs(&prepared.hash, &asset.psh, prepared.diffuse.as_ref().unwrap(), &asset.diffuse, &p, &mut xl, &mut dl, true);
             };
+            assert!(xv.iter().flatten().zip(xl.iter().flatten()).chain(dv.iter().flatten().zip(dl.iter().flatten())).all(|(a, b)| a.to_bits() == b.to_bits()), "round {round}");
             for lane in 0..TILE {
                 let at = tile[lane].p_hit;
                 for f in 0..nf {
