@@ -1285,7 +1285,7 @@ mod v3 {
         const EDGE: i32 = PshBricks::EDGE as i32;
         // Lane reads also read the masked-off lanes (at brick 0), so they need a brick.
         let lane_reads = lane_reads && hash.tables.len() >= (EDGE * EDGE * EDGE) as usize && !bytes.corners.is_empty();
-        // SAFETY (callers): every lane of `at` indexes `base`'s slice.
+        // Unmasked reads. SAFETY (callers): every lane of `at` indexes `base`'s slice.
         let read = |base: *const i32, at: __m256i| unsafe { if lane_reads { read8(base, at) } else { _mm256_i32gather_epi32::<4>(base, at) } };
         let mut ids = [[0u32; 8]; 8];
         let mut weights = [[0.0f32; 8]; 8];
@@ -1345,7 +1345,7 @@ mod v3 {
                 for corner in 0..8i32 {
                     let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
                     let at = _mm256_add_epi32(table0, _mm256_set1_epi32(dx + EDGE * (dy + EDGE * dz)));
-                    let id = if lane_reads { _mm256_blendv_epi8(absent, read(hash.tables.as_ptr().cast(), at), live) } else { _mm256_mask_i32gather_epi32::<4>(absent, hash.tables.as_ptr().cast(), at, live) };
+                    let id = if lane_reads { _mm256_blendv_epi8(absent, read8(hash.tables.as_ptr().cast(), at), live) } else { _mm256_mask_i32gather_epi32::<4>(absent, hash.tables.as_ptr().cast(), at, live) };
                     let id = _mm256_blendv_epi8(id, zero_row, _mm256_cmpeq_epi32(id, absent));
                     _mm256_storeu_si256(ids[corner as usize].as_mut_ptr().cast(), id);
                     _mm256_storeu_ps(weights[corner as usize].as_mut_ptr(), w[corner as usize]);
@@ -1384,7 +1384,7 @@ mod v3 {
                 for corner in 0..8i32 {
                     let (dx, dy, dz) = (corner & 1, (corner >> 1) & 1, corner >> 2);
                     let at = _mm256_add_epi32(start, _mm256_set1_epi32(dx + e * (dy + e * dz)));
-                    let v = if lane_reads { _mm256_and_si256(live, read(bytes.corners.as_ptr().cast(), at)) } else { _mm256_mask_i32gather_epi32::<4>(_mm256_setzero_si256(), bytes.corners.as_ptr().cast(), at, live) };
+                    let v = if lane_reads { _mm256_and_si256(live, read8(bytes.corners.as_ptr().cast(), at)) } else { _mm256_mask_i32gather_epi32::<4>(_mm256_setzero_si256(), bytes.corners.as_ptr().cast(), at, live) };
                     let wc = w[corner as usize];
                     acc[0] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(v, byte)), acc[0]);
                     acc[1] = _mm256_fmadd_ps(wc, _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32::<8>(v), byte)), acc[1]);
@@ -2640,8 +2640,9 @@ fn sigmoid(x: f32) -> f32 {
 /// `e^(−x)` for the march's `x = σδ`: Cephes' single-precision range reduction and
 /// polynomial, inline (the libm call and the register spills around it cost more than the
 /// sample itself), in fused multiply-adds (the vector paths' `vfmadd`s, the same bits;
-/// 0.98–0.99 of the time per lego frame on Zen 3 against separate products and sums). Within 2 ulp of libm's `expf` over the range the march sees (tested); 0
-/// below e^−87 and NaN for NaN, as `expf`.
+/// 0.98–0.99 of the time per lego frame on Zen 3 against separate products and sums).
+/// Within 2 ulp of libm's `expf` over the range the march sees (tested); 0 below e^−87 and
+/// NaN for NaN, as `expf`.
 #[inline(always)]
 pub fn exp_neg(x: f32) -> f32 {
     let x = -x;
