@@ -1650,6 +1650,8 @@ mod v3 {
             }
         }
         let rule = Rule { s, step, gap_t, margin: step / 16.0, r };
+        // Whether `fetch8` reads the corners (f16 copy, bricks up to 5³ cells).
+        let row_reads = cells.values_f16.is_some() && density.brick <= 5;
         while active != 0 {
             // Lanes that have finished (or are idle): frozen until the refill below.
             let mut finished = !active & (u64::MAX >> (64 - lanes));
@@ -1666,20 +1668,34 @@ mod v3 {
                     let frozen = |at: usize| _mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32((finished >> at) as i32), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256());
                     let frozen = [frozen(0), frozen(8), frozen(16), frozen(24)];
                     // The four groups stage by stage, written out: every group's cell gathers,
-                    // then every group's corner gathers and exps, then the rules (as a loop
-                    // over the groups it ran 5% slower).
+                    // then every group's corner reads, then their sums and exps, then the
+                    // rules (as a loop over the groups it ran 5% slower). With the f16 row
+                    // reads, all four groups' loads are issued before any sum waits on one
+                    // (0.983–0.991 of the time per lego frame at 640×480 and 1280×720 on Zen 3
+                    // against reading and summing a group at a time; the same frames).
                     let at = [
                         locate8(density, cells, &wave, 0, step),
                         locate8(density, cells, &wave, 8, step),
                         locate8(density, cells, &wave, 16, step),
                         locate8(density, cells, &wave, 24, step),
                     ];
-                    let sampled = [
-                        sigma8(density, cells, &at[0], frozen[0], step),
-                        sigma8(density, cells, &at[1], frozen[1], step),
-                        sigma8(density, cells, &at[2], frozen[2], step),
-                        sigma8(density, cells, &at[3], frozen[3], step),
-                    ];
+                    let sampled = if row_reads {
+                        let fetch = |l: &Located| fetch8(density, cells, l.g, l.c, _mm256_max_epi32(l.brick, _mm256_setzero_si256()));
+                        let rows = [fetch(&at[0]), fetch(&at[1]), fetch(&at[2]), fetch(&at[3])];
+                        [
+                            sigma_of8(&at[0], sum_rows8(&rows[0]), frozen[0], step),
+                            sigma_of8(&at[1], sum_rows8(&rows[1]), frozen[1], step),
+                            sigma_of8(&at[2], sum_rows8(&rows[2]), frozen[2], step),
+                            sigma_of8(&at[3], sum_rows8(&rows[3]), frozen[3], step),
+                        ]
+                    } else {
+                        [
+                            sigma8(density, cells, &at[0], frozen[0], step),
+                            sigma8(density, cells, &at[1], frozen[1], step),
+                            sigma8(density, cells, &at[2], frozen[2], step),
+                            sigma8(density, cells, &at[3], frozen[3], step),
+                        ]
+                    };
                     rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 0, &at[0], sampled[0], frozen[0])
                         | rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 8, &at[1], sampled[1], frozen[1])
                         | rule8::<MULTI>(&rule, &mut wave, &mut runs, &mut segments, 16, &at[2], sampled[2], frozen[2])
@@ -1861,12 +1877,31 @@ mod v3 {
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     unsafe fn sigma8(density: &TextureCubes, cells: &LiveCells, at: &Located, frozen: __m256i, step: f32) -> (__m256i, __m256, __m256) {
-        let is_live = _mm256_andnot_si256(frozen, _mm256_cmpgt_epi32(at.brick, _mm256_set1_epi32(-1)));
         // SAFETY: a dead cell (negative) is read as brick 0 and masked out below.
         let acc = unsafe { density8(density, cells, at.g, at.c, _mm256_max_epi32(at.brick, _mm256_setzero_si256())) };
+        sigma_of8(at, acc, frozen, step)
+    }
+
+    /// [`sigma8`] from the trilinear sums `acc` of its samples.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn sigma_of8(at: &Located, acc: __m256, frozen: __m256i, step: f32) -> (__m256i, __m256, __m256) {
+        let is_live = _mm256_andnot_si256(frozen, _mm256_cmpgt_epi32(at.brick, _mm256_set1_epi32(-1)));
         let sigma = _mm256_and_ps(acc, _mm256_castsi256_ps(is_live));
         let ex = _mm256_blendv_ps(_mm256_set1_ps(1.0), exp_neg8(_mm256_mul_ps(sigma, _mm256_set1_ps(step))), _mm256_castsi256_ps(is_live));
         (is_live, sigma, ex)
+    }
+
+    /// `_mm256_blendv_ps(a, b, mask)` as one instruction that the compiler cannot see
+    /// through: a blend of a loaded value stored back to where it came from would otherwise
+    /// become a masked store (`vmaskmovps`), which is slow on AMD's cores.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    fn blend_opaque(a: __m256, b: __m256, mask: __m256) -> __m256 {
+        let out: __m256;
+        // SAFETY: a register-only blend (AVX, which the function's features include).
+        unsafe { std::arch::asm!("vblendvps {o}, {a}, {b}, {m}", o = lateout(ymm_reg) out, a = in(ymm_reg) a, b = in(ymm_reg) b, m = in(ymm_reg) mask, options(pure, nomem, nostack, preserves_flags)) };
+        out
     }
 
     /// The march's constants for [`rule8`].
@@ -1903,9 +1938,9 @@ mod v3 {
             let w = _mm256_mul_ps(transmittance, alpha);
             let w_max = ld(&wave.w_max);
             let new_max = _mm256_cmp_ps::<_CMP_GT_OQ>(w, w_max);
-            let w_max = _mm256_blendv_ps(w_max, w, new_max);
+            let w_max = blend_opaque(w_max, w, new_max);
             _mm256_storeu_ps(wave.w_max.as_mut_ptr().add(at), w_max);
-            _mm256_storeu_ps(wave.t_hit.as_mut_ptr().add(at), _mm256_blendv_ps(ld(&wave.t_hit), l.t, new_max));
+            _mm256_storeu_ps(wave.t_hit.as_mut_ptr().add(at), blend_opaque(ld(&wave.t_hit), l.t, new_max));
             let transmittance = _mm256_mul_ps(transmittance, _mm256_sub_ps(one, alpha));
             _mm256_storeu_ps(wave.transmittance.as_mut_ptr().add(at), transmittance);
             let stop = _mm256_or_ps(
@@ -1934,13 +1969,13 @@ mod v3 {
                 let weight = _mm256_blendv_ps(ld(&runs.weight), zero, start);
                 let peak_w = _mm256_blendv_ps(ld(&runs.peak_w), zero, start);
                 let peak_t = _mm256_blendv_ps(ld(&runs.peak_t), t, start);
-                _mm256_storeu_ps(runs.first_t.as_mut_ptr().add(at), _mm256_blendv_ps(ld(&runs.first_t), t, start));
+                _mm256_storeu_ps(runs.first_t.as_mut_ptr().add(at), blend_opaque(ld(&runs.first_t), t, start));
                 _mm256_storeu_si256(runs.open.as_mut_ptr().add(at).cast(), _mm256_castps_si256(_mm256_or_ps(open, valid)));
-                _mm256_storeu_ps(runs.weight.as_mut_ptr().add(at), _mm256_blendv_ps(weight, _mm256_add_ps(weight, w), valid));
-                _mm256_storeu_ps(runs.last_t.as_mut_ptr().add(at), _mm256_blendv_ps(ld(&runs.last_t), t, valid));
+                _mm256_storeu_ps(runs.weight.as_mut_ptr().add(at), blend_opaque(weight, _mm256_add_ps(weight, w), valid));
+                _mm256_storeu_ps(runs.last_t.as_mut_ptr().add(at), blend_opaque(ld(&runs.last_t), t, valid));
                 let heavier = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(w, peak_w));
-                _mm256_storeu_ps(runs.peak_w.as_mut_ptr().add(at), _mm256_blendv_ps(peak_w, w, heavier));
-                _mm256_storeu_ps(runs.peak_t.as_mut_ptr().add(at), _mm256_blendv_ps(peak_t, t, heavier));
+                _mm256_storeu_ps(runs.peak_w.as_mut_ptr().add(at), blend_opaque(peak_w, w, heavier));
+                _mm256_storeu_ps(runs.peak_t.as_mut_ptr().add(at), blend_opaque(peak_t, t, heavier));
                 let primary = _mm256_or_ps(_mm256_castsi256_ps(ldi(&runs.primary)), _mm256_and_ps(valid, new_max));
                 _mm256_storeu_si256(runs.primary.as_mut_ptr().add(at).cast(), _mm256_castps_si256(primary));
             }
@@ -2045,33 +2080,8 @@ mod v3 {
         // (x, y ≤ r − 1), inside the f16 copy's 8 u16s of padding.
         if let Some(h) = &cells.values_f16 {
             if e <= 6 {
-                // A lane's 4 corners in a z plane, (x, y), (x + 1, y), (x, y + 1) and
-                // (x + 1, y + 1), lie in the 8 f16s from (x, y): one 16-byte load per lane
-                // and plane, then a 4 × 8 transpose into 8 lanes per corner (0.94 of the time
-                // per lego frame at 640×480 and 1280×720 on Zen 3, whose gathers are slow,
-                // and the same frames; reading the pairs one lane at a time: 0.945–0.955).
-                let mut first_of = [0i32; 8];
-                unsafe { _mm256_storeu_si256(first_of.as_mut_ptr().cast(), idx0) };
-                let eb = 2 * e as i8;
-                // Per 128-bit half: the 4 corners' u16s to the low 8 bytes.
-                let pick = _mm256_setr_epi8(0, 1, 2, 3, eb, eb + 1, eb + 2, eb + 3, -1, -1, -1, -1, -1, -1, -1, -1, 0, 1, 2, 3, eb, eb + 1, eb + 2, eb + 3, -1, -1, -1, -1, -1, -1, -1, -1);
-                for dz in 0..2 {
-                    let plane = (e * e * dz) as usize;
-                    let row = |l: usize| unsafe { _mm_loadu_si128(h.as_ptr().add(first_of[l] as usize + plane).cast()) };
-                    // Lanes l and l + 4 in one register: [a b c d | …] per half.
-                    let lanes = |l: usize| _mm256_shuffle_epi8(_mm256_inserti128_si256::<1>(_mm256_castsi128_si256(row(l)), row(l + 4)), pick);
-                    let (low, high) = (_mm256_unpacklo_epi16(lanes(0), lanes(1)), _mm256_unpacklo_epi16(lanes(2), lanes(3)));
-                    // [a0–3 b0–3 | a4–7 b4–7] → [a0–7 | b0–7]; the same for c and d.
-                    let (ab, cd) = (_mm256_unpacklo_epi32(low, high), _mm256_unpackhi_epi32(low, high));
-                    for (dy, pair) in [ab, cd].into_iter().enumerate() {
-                        let pair = _mm256_permute4x64_epi64::<0b11_01_10_00>(pair);
-                        let (v0, v1) = (_mm256_cvtph_ps(_mm256_castsi256_si128(pair)), _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(pair)));
-                        let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
-                        acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
-                        acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
-                    }
-                }
-                return acc;
+                // SAFETY: as above (the caller's guarantee).
+                return sum_rows8(&unsafe { rows8(h, e, (fx, fy, fz), idx0) });
             }
             // Corners (0, y, z) and (1, y, z) as one 32-bit read of two f16s: split,
             // convert, and add in the same corner order as below.
@@ -2089,6 +2099,91 @@ mod v3 {
                 let w = _mm256_mul_ps(_mm256_mul_ps(if dx == 1 { fx } else { hx }, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
                 let v = unsafe { _mm256_i32gather_ps::<4>(density.values.as_ptr(), _mm256_add_epi32(idx0, _mm256_set1_epi32(dx + e * (dy + e * dz)))) };
                 acc = _mm256_add_ps(acc, _mm256_mul_ps(w, v));
+            }
+        }
+        acc
+    }
+
+    /// A group's trilinear fractions and its corner rows, loaded: the first half of
+    /// [`density8`]'s row reads (bricks up to 5³ cells), split off so that a step can issue
+    /// every group's loads before it waits for any ([`sum_rows8`] is the second half).
+    pub(super) struct Rows8 {
+        f: [__m256; 3],
+        /// Per z plane, lanes l and l + 4 in one register: their 4 corners' f16s in the low
+        /// 8 bytes of each 128-bit half.
+        lanes: [[__m256i; 4]; 2],
+    }
+
+    /// The fractions and first corners of `density8`, from the points `g` of cells `c` in
+    /// bricks `first` (dead lanes read as brick 0).
+    ///
+    /// # Safety
+    /// As [`density8`]; the cubes have an f16 copy and bricks of up to 5³ cells.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) unsafe fn fetch8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3], c: [__m256; 3], first: __m256i) -> Rows8 {
+        let r = density.brick as f32;
+        let e = density.brick as i32 + 1;
+        let zero = _mm256_setzero_ps();
+        let split = |a: usize| {
+            let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
+            let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
+            (_mm256_sub_ps(u, base), base)
+        };
+        let (fx, bx) = split(0);
+        let (fy, by) = split(1);
+        let (fz, bz) = split(2);
+        let ef = _mm256_set1_ps(e as f32);
+        let idx0 = _mm256_add_epi32(first, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx)));
+        let h = cells.values_f16.as_deref().expect("the caller checked");
+        // SAFETY: the caller's guarantee.
+        unsafe { rows8(h, e, (fx, fy, fz), idx0) }
+    }
+
+    /// The row reads of [`density8`] from its corner offsets `idx0`.
+    ///
+    /// # Safety
+    /// As [`density8`]'s row reads; `e ≤ 6`.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    unsafe fn rows8(h: &[u16], e: i32, (fx, fy, fz): (__m256, __m256, __m256), idx0: __m256i) -> Rows8 {
+        // A lane's 4 corners in a z plane, (x, y), (x + 1, y), (x, y + 1) and (x + 1, y + 1),
+        // lie in the 8 f16s from (x, y): one 16-byte load per lane and plane, then (in
+        // `sum_rows8`) a 4 × 8 transpose into 8 lanes per corner (0.94 of the time per lego
+        // frame at 640×480 and 1280×720 on Zen 3, whose gathers are slow, and the same
+        // frames; reading the pairs one lane at a time: 0.945–0.955).
+        let mut first_of = [0i32; 8];
+        unsafe { _mm256_storeu_si256(first_of.as_mut_ptr().cast(), idx0) };
+        let eb = 2 * e as i8;
+        // Per 128-bit half: the 4 corners' u16s to the low 8 bytes.
+        let pick = _mm256_setr_epi8(0, 1, 2, 3, eb, eb + 1, eb + 2, eb + 3, -1, -1, -1, -1, -1, -1, -1, -1, 0, 1, 2, 3, eb, eb + 1, eb + 2, eb + 3, -1, -1, -1, -1, -1, -1, -1, -1);
+        let plane = |dz: usize| {
+            let plane = (e * e) as usize * dz;
+            let row = |l: usize| unsafe { _mm_loadu_si128(h.as_ptr().add(first_of[l] as usize + plane).cast()) };
+            let lanes = |l: usize| _mm256_shuffle_epi8(_mm256_inserti128_si256::<1>(_mm256_castsi128_si256(row(l)), row(l + 4)), pick);
+            [lanes(0), lanes(1), lanes(2), lanes(3)]
+        };
+        Rows8 { f: [fx, fy, fz], lanes: [plane(0), plane(1)] }
+    }
+
+    /// The second half of [`density8`]'s row reads: σ from [`Rows8`], in its order.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) fn sum_rows8(rows: &Rows8) -> __m256 {
+        let [fx, fy, fz] = rows.f;
+        let one = _mm256_set1_ps(1.0);
+        let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
+        let mut acc = _mm256_setzero_ps();
+        for (dz, l) in rows.lanes.iter().enumerate() {
+            let (low, high) = (_mm256_unpacklo_epi16(l[0], l[1]), _mm256_unpacklo_epi16(l[2], l[3]));
+            // [a0–3 b0–3 | a4–7 b4–7] → [a0–7 | b0–7]; the same for c and d.
+            let (ab, cd) = (_mm256_unpacklo_epi32(low, high), _mm256_unpackhi_epi32(low, high));
+            for (dy, pair) in [ab, cd].into_iter().enumerate() {
+                let pair = _mm256_permute4x64_epi64::<0b11_01_10_00>(pair);
+                let (v0, v1) = (_mm256_cvtph_ps(_mm256_castsi256_si128(pair)), _mm256_cvtph_ps(_mm256_extracti128_si256::<1>(pair)));
+                let wyz = |w: __m256| _mm256_mul_ps(_mm256_mul_ps(w, if dy == 1 { fy } else { hy }), if dz == 1 { fz } else { hz });
+                acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(hx), v0));
+                acc = _mm256_add_ps(acc, _mm256_mul_ps(wyz(fx), v1));
             }
         }
         acc
