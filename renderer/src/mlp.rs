@@ -135,8 +135,9 @@ pub struct MlpKernel {
     hidden8: Option<Int8Hidden>,
 }
 
-/// The 64 → 64 hidden layer in 8 bits for AVX-512 VNNI (`vpdpbusd`: 64 products of
-/// u8 × i8 summed into 16 i32 per instruction, four times an f32 FMA's count).
+/// The 64 → 64 hidden layer in 8 bits: for AVX-512 VNNI (`vpdpbusd`: 64 products of
+/// u8 × i8 summed into 16 i32 per instruction, four times an f32 FMA's count), or for AVX2
+/// (`vpmaddubsw` then `vpmaddwd`: 32 products into 8 i32 in two instructions).
 #[derive(Debug, Clone, PartialEq)]
 struct Int8Hidden {
     /// `w1` per output row rounded to −127..=127 of `scale[j]`, four inputs per i32, laid
@@ -144,10 +145,14 @@ struct Int8Hidden {
     w: Vec<i32>,
     /// Output row j's weights are `scale[j] ×` its bytes.
     scale: [f32; HIDDEN],
+    /// The byte a query's largest hidden value maps to: 255 with VNNI; 127 with AVX2,
+    /// whose `vpmaddubsw` sums two u8 × i8 products in an i16 that must not saturate
+    /// (2 · 127 · 127 < 2¹⁵ ≤ 2 · 255 · 127).
+    levels: f32,
 }
 
 impl Int8Hidden {
-    fn new(w1t: &[f32]) -> Self {
+    fn new(w1t: &[f32], levels: f32) -> Self {
         let w1 = |j: usize, i: usize| w1t[i * HIDDEN + j];
         let scale: [f32; HIDDEN] = std::array::from_fn(|j| (0..HIDDEN).fold(0.0f32, |m, i| m.max(w1(j, i).abs())) / 127.0);
         let w = (0..HIDDEN * HIDDEN / 4)
@@ -160,7 +165,7 @@ impl Int8Hidden {
                 i32::from_le_bytes([byte(0) as u8, byte(1) as u8, byte(2) as u8, byte(3) as u8])
             })
             .collect();
-        Self { w, scale }
+        Self { w, scale, levels }
     }
 }
 
@@ -207,16 +212,19 @@ impl MlpKernel {
     }
 
     /// This kernel with its hidden layer (two thirds of the multiply-adds) in 8 bits in
-    /// [`Self::forward_tile`], if the CPU has AVX-512 VNNI (else unchanged): each query's
-    /// hidden vector is scaled to 0..=255 by its own largest value, each output's weights to
-    /// −127..=127 by their largest magnitude, and the products summed exactly in i32. The
-    /// rounding errs by at most half a step of each (1/510 of a query's largest hidden
-    /// value, 1/254 of a row's largest weight); the lego frame is within 2 of 255 of the f32
-    /// kernel's, 65.6 dB (`nephele bench render --networks f32,int8`).
+    /// [`Self::forward_tile`], if the CPU has AVX-512 VNNI or, without AVX-512, AVX2 (else
+    /// unchanged): each query's hidden vector is scaled to 0..=L by its own largest value
+    /// (L = 255 with VNNI, 127 with AVX2), each output's weights to −127..=127 by their
+    /// largest magnitude, and the products summed exactly in i32. The rounding errs by at
+    /// most half a step of each (1/(2L) of a query's largest hidden value, 1/254 of a row's
+    /// largest weight). On lego the frame is within 2 of 255 of the f32 kernel's with VNNI
+    /// (65.6 dB) and within 5 with AVX2 (64.2 dB; `nephele bench render --networks f32,int8`).
     pub fn with_int8_hidden(mut self) -> Self {
         #[cfg(target_arch = "x86_64")]
         if simd::vnni() {
-            self.hidden8 = Some(Int8Hidden::new(&self.w1t));
+            self.hidden8 = Some(Int8Hidden::new(&self.w1t, 255.0));
+        } else if simd::level() == simd::Level::Avx2 {
+            self.hidden8 = Some(Int8Hidden::new(&self.w1t, 127.0));
         }
         self
     }
@@ -240,6 +248,7 @@ impl MlpKernel {
                 return simd::tile_avx512_int8(self, x);
             }
             simd::Level::Avx512 => return simd::tile_avx512(self, x),
+            simd::Level::Avx2 if self.hidden8.is_some() => return simd::tile_avx2_int8(self, x),
             simd::Level::Avx2 => return simd::tile_avx2(self, x),
             simd::Level::Portable => {}
         }
@@ -303,6 +312,14 @@ pub fn peak_fma_gflops() -> Option<(f64, usize, String)> {
     }
     #[cfg(not(target_arch = "x86_64"))]
     None
+}
+
+/// Whether the 8-bit hidden layer would use AVX-512 VNNI (false off x86-64).
+pub fn simd_vnni() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return simd::vnni();
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// The vector kernels, compiled for AVX-512 and AVX2 + FMA and picked at run time (the
@@ -567,6 +584,91 @@ pub mod simd {
         o
     }
 
+    /// [`dense_int8`] for AVX2: the products by `vpmaddubsw` (pairs of u8 × i8 summed into
+    /// i16; hidden values in 0..=127 so that no sum saturates) and `vpmaddwd` by ones (pairs
+    /// of those into i32), 8 queries per register, blocks of 4 outputs × both halves of the
+    /// tile in 8 accumulators.
+    #[target_feature(enable = "avx2,fma")]
+    fn dense_int8_avx2(q: &super::Int8Hidden, b: &[f32; HIDDEN], h0: &[[f32; TILE]; HIDDEN], active: &Active, y: &mut [[f32; TILE]; HIDDEN]) -> Active {
+        const BLOCK: usize = 4;
+        let zero = _mm256_setzero_ps();
+        let half = |row: &[f32; TILE], h: usize| unsafe { _mm256_loadu_ps(row.as_ptr().add(8 * h)) };
+        let mut largest = [zero; 2];
+        let mut groups = 0u32;
+        for &i in active.rows() {
+            let row = &h0[i as usize];
+            largest = [_mm256_max_ps(largest[0], half(row, 0)), _mm256_max_ps(largest[1], half(row, 1))];
+            groups |= 1 << (i / 4);
+        }
+        // Per lane: bytes = h · L / largest (0 where the query's hidden vector is all 0).
+        let to_byte = largest.map(|l| _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(l, zero), _mm256_div_ps(_mm256_set1_ps(q.levels), l)));
+        let lane_scale = largest.map(|l| _mm256_mul_ps(l, _mm256_set1_ps(1.0 / q.levels)));
+        let mut packed = [[_mm256_setzero_si256(); 2]; HIDDEN / 4];
+        let mut which = [0u8; HIDDEN / 4];
+        let mut n = 0;
+        while groups != 0 {
+            let g = groups.trailing_zeros() as usize;
+            groups &= groups - 1;
+            let mut p = [_mm256_setzero_si256(); 2];
+            for (byte, row) in h0[4 * g..4 * g + 4].iter().enumerate() {
+                for (h, p) in p.iter_mut().enumerate() {
+                    // 0 ≤ h ≤ largest, so the rounded byte is 0..=L.
+                    let v = _mm256_cvtps_epi32(_mm256_mul_ps(half(row, h), to_byte[h]));
+                    *p = _mm256_or_si256(*p, _mm256_sllv_epi32(v, _mm256_set1_epi32(8 * byte as i32)));
+                }
+            }
+            (packed[n], which[n]) = (p, g as u8);
+            n += 1;
+        }
+        let ones = _mm256_set1_epi16(1);
+        let mut out = Active { rows: [0; HIDDEN], n: 0 };
+        for o0 in (0..HIDDEN).step_by(BLOCK) {
+            let w: &[i32; 256] = q.w[256 * (o0 / 16)..256 * (o0 / 16 + 1)].try_into().expect("a block of weights");
+            let mut acc = [[_mm256_setzero_si256(); 2]; BLOCK];
+            for (p, &g) in packed[..n].iter().zip(&which[..n]) {
+                let at = 16 * (g as usize % 16) + o0 % 16;
+                let wg: &[i32; BLOCK] = w[at..at + BLOCK].try_into().expect("a group of weights");
+                for (a, &wj) in acc.iter_mut().zip(wg) {
+                    let wv = _mm256_set1_epi32(wj);
+                    a[0] = _mm256_add_epi32(a[0], _mm256_madd_epi16(_mm256_maddubs_epi16(p[0], wv), ones));
+                    a[1] = _mm256_add_epi32(a[1], _mm256_madd_epi16(_mm256_maddubs_epi16(p[1], wv), ones));
+                }
+            }
+            for (jj, a) in acc.iter().enumerate() {
+                let j = o0 + jj;
+                let v = |h: usize| _mm256_max_ps(_mm256_fmadd_ps(_mm256_mul_ps(_mm256_cvtepi32_ps(a[h]), lane_scale[h]), _mm256_set1_ps(q.scale[j]), _mm256_set1_ps(b[j])), zero);
+                let (v0, v1) = (v(0), v(1));
+                // SAFETY: `y[j]` is 16 f32.
+                unsafe {
+                    _mm256_storeu_ps(y[j].as_mut_ptr(), v0);
+                    _mm256_storeu_ps(y[j].as_mut_ptr().add(8), v1);
+                }
+                let nonzero = |v: __m256| _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(v, zero)) != 0;
+                out.rows[out.n] = j as u8;
+                out.n += usize::from(nonzero(v0) || nonzero(v1));
+            }
+        }
+        out
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    fn avx2_int8(k: &MlpKernel, x: &TileInput) -> [[f32; TILE]; 4] {
+        let q = k.hidden8.as_ref().expect("checked by the caller");
+        let mut h0 = [[0.0f32; TILE]; HIDDEN];
+        let active = dense256::<HIDDEN, 6>(&k.w0t, &k.b0, &x[..k.input], &Active::all(k.input), &mut h0, true);
+        let mut h1 = [[0.0f32; TILE]; HIDDEN];
+        let active = dense_int8_avx2(q, &k.b1, &h0, &active, &mut h1);
+        let mut o = [[0.0f32; TILE]; 4];
+        dense256::<4, 4>(&k.w2t, &k.b2, &h1, &active, &mut o, false);
+        o
+    }
+
+    pub fn tile_avx2_int8(k: &MlpKernel, x: &TileInput) -> [[f32; TILE]; 4] {
+        assert!(matches!(level(), Level::Avx2 | Level::Avx512) && k.hidden8.as_ref().is_some_and(|q| q.levels == 127.0));
+        // SAFETY: the CPU has AVX2 and FMA (checked above); the body is safe code.
+        unsafe { avx2_int8(k, x) }
+    }
+
     pub fn tile_avx512(k: &MlpKernel, x: &TileInput) -> [[f32; TILE]; 4] {
         assert_eq!(level(), Level::Avx512);
         // SAFETY: the CPU has AVX-512F and FMA (checked by `level`); the body is safe code.
@@ -733,8 +835,8 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn int8_hidden_layer_errs_within_its_rounding_bound() {
-        if !simd::vnni() {
-            eprintln!("this CPU has no AVX-512 VNNI: the 8-bit hidden layer is never used here (the f32 kernel is)");
+        if !simd::vnni() && simd::level() != simd::Level::Avx2 {
+            eprintln!("this CPU has neither AVX-512 VNNI nor AVX2 without AVX-512: the 8-bit hidden layer is never used here (the f32 kernel is)");
             assert!(!SpecularMlp::zeros(4).kernel().with_int8_hidden().int8_hidden());
             return;
         }
@@ -750,6 +852,7 @@ mod tests {
             }
             let k = m.kernel().with_int8_hidden();
             assert!(k.int8_hidden());
+            let levels = k.hidden8.as_ref().map_or(0.0, |q| q.levels);
             let mut x = [[0.0f32; TILE]; MAX_INPUT];
             for row in x.iter_mut().take(input) {
                 row.iter_mut().for_each(|v| *v = scale * rng.random_range(-3.0..3.0));
@@ -764,7 +867,7 @@ mod tests {
             for l in 0..TILE {
                 let xs: Vec<f32> = (0..input).map(|i| x[i][l]).collect();
                 let h0: Vec<f32> = (0..HIDDEN).map(|j| (m.b0[j] + (0..input).map(|i| m.w0[j * input + i] * xs[i]).sum::<f32>()).max(0.0)).collect();
-                let lambda = h0.iter().fold(0.0f32, |a, &v| a.max(v)) / 255.0;
+                let lambda = h0.iter().fold(0.0f32, |a, &v| a.max(v)) / levels;
                 let (bound1, var1): (Vec<f32>, Vec<f64>) = (0..HIDDEN)
                     .map(|j| {
                         let row = &m.w1[j * HIDDEN..(j + 1) * HIDDEN];
