@@ -6,6 +6,9 @@
 //! task whose users all left is skipped if it has not started and stopped at the renderer's
 //! next safe point if it has. Each worker queues at most
 //! [`nephele_limits::MAX_QUEUED_TASKS_PER_WORKER`] tasks: the pool's memory has a bound.
+//! The renders run on their own thread pool at a lower scheduling priority than the rest of
+//! the process ([`render_pool`]), so that the short, latency-bound work beside them runs
+//! first when both want a core.
 
 use std::{
     collections::HashMap,
@@ -30,6 +33,59 @@ pub enum WorkerEvent {
 /// Edge of the calibration view, pixels.
 const CALIBRATION_EDGE: u32 = 256;
 
+/// How much lower than the process's the render threads' priority is (a nice increment);
+/// `NEPHELE_RENDER_NICE` changes it (0: the same priority).
+pub const RENDER_NICE: i32 = 10;
+
+/// The render threads of in-process workers: one per core, each at nice +[`RENDER_NICE`]
+/// (or `NEPHELE_RENDER_NICE`) relative to the process, so that when the encoder (the frame
+/// before's), WebRTC, signaling or an arriving pose want a core the renderer holds, they
+/// take it at once instead of waiting for a time slice; the render, which takes every core
+/// anyway, yields them that time and no more. `None` (renders then use the global pool) if
+/// the pool cannot be built.
+fn render_pool() -> Option<Arc<rayon::ThreadPool>> {
+    let nice = std::env::var("NEPHELE_RENDER_NICE").ok().and_then(|v| v.parse::<i32>().ok()).unwrap_or(RENDER_NICE).clamp(0, 19);
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("render-{i}"))
+        .start_handler(move |_| lower_priority(nice))
+        .build()
+        .map_err(|e| tracing::warn!("render thread pool: {e}; rendering on the global pool"))
+        .ok()
+        .map(Arc::new)
+}
+
+/// Raises the calling thread's nice value by `by` (Linux keeps one per thread); a failure
+/// only logs.
+#[allow(unsafe_code)] // two FFI calls into libc
+fn lower_priority(by: i32) {
+    if by == 0 {
+        return;
+    }
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: gettid takes no arguments; getpriority and setpriority only read and set
+        // this thread's nice value.
+        let changed = unsafe {
+            let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+            let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+            libc::setpriority(libc::PRIO_PROCESS, tid, (now + by).min(19))
+        };
+        if changed != 0 {
+            tracing::warn!("could not lower a render thread's priority: {}", std::io::Error::last_os_error());
+        }
+    }
+}
+
+/// Runs `f` on `pool` (the caller waits), or here (on the global pool) without one.
+fn on_pool<T: Send>(pool: Option<&rayon::ThreadPool>, f: impl FnOnce() -> T + Send) -> T {
+    match pool {
+        Some(pool) => pool.install(f),
+        None => f(),
+    }
+}
+
 /// A pool of one or more render threads sharing the catalogue.
 pub struct LocalWorkers {
     senders: Vec<(WorkerId, mpsc::SyncSender<RenderTask>)>,
@@ -42,11 +98,12 @@ impl LocalWorkers {
     pub fn spawn(catalog: Arc<Catalog>, count: usize, report: impl Fn(WorkerEvent) + Send + Clone + 'static) -> std::io::Result<Self> {
         let flags = Arc::new(Mutex::new(HashMap::new()));
         let mut senders = Vec::new();
+        let pool = render_pool();
         for i in 1..=count.max(1) {
             let id = WorkerId(format!("local-{i}"));
             let (tx, rx) = mpsc::sync_channel::<RenderTask>(nephele_limits::MAX_QUEUED_TASKS_PER_WORKER);
-            let (catalog, report, flags, name) = (Arc::clone(&catalog), report.clone(), Arc::clone(&flags), id.clone());
-            std::thread::Builder::new().name(id.0.clone()).spawn(move || worker_loop(name, &catalog, rx, &report, &flags))?;
+            let (catalog, report, flags, name, pool) = (Arc::clone(&catalog), report.clone(), Arc::clone(&flags), id.clone(), pool.clone());
+            std::thread::Builder::new().name(id.0.clone()).spawn(move || worker_loop(name, &catalog, pool.as_deref(), rx, &report, &flags))?;
             senders.push((id, tx));
         }
         Ok(Self { senders, flags })
@@ -86,17 +143,18 @@ impl LocalWorkers {
 fn worker_loop(
     id: WorkerId,
     catalog: &Catalog,
+    pool: Option<&rayon::ThreadPool>,
     tasks: mpsc::Receiver<RenderTask>,
     report: &impl Fn(WorkerEvent),
     flags: &Mutex<HashMap<TaskId, CancelFlag>>,
 ) {
-    let rays_per_s = calibrate(catalog);
+    let rays_per_s = on_pool(pool, || calibrate(catalog));
     tracing::info!(worker = %id.0, backend = %catalog.backend_name, rays_per_s, "render worker up");
     report(WorkerEvent::Up { worker: id.clone(), rays_per_s, slots: 1, farm: None, assets: None });
     let lock = || flags.lock().unwrap_or_else(|e| e.into_inner());
     for task in tasks {
         let cancel = lock().get(&task.id).cloned().unwrap_or_default();
-        let result = render_task(catalog, &task, &cancel);
+        let result = on_pool(pool, || render_task(catalog, &task, &cancel));
         lock().remove(&task.id);
         report(WorkerEvent::Done(result));
     }
