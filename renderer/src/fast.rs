@@ -35,10 +35,10 @@
 //!   multiply-adds round differently from the reference's separate ones (output differences
 //!   ~1e-6), and the sigmoids use the march's `exp` (within 4 ulp of libm's). Where the CPU
 //!   has AVX-512 VNNI the hidden layer runs in 8 bits ([`Network::Int8`], 0.94–0.95 of the
-//!   time per lego frame; the frame within 2 of 255 of the f32 network's, 65.6 dB);
-//!   `NEPHELE_NETWORK=f32` keeps f32. With AVX2 and no AVX-512, `NEPHELE_NETWORK=int8`
-//!   runs it with the hidden values in 7 bits (0.966–0.97 of the time per lego 640×480
-//!   frame on Zen 3, 0.95 at 1280×720; within 5 of 255, 98% of the values equal, 64.2 dB).
+//!   time per lego frame; the frame within 2 of 255 of the f32 network's, 65.6 dB), and
+//!   with AVX2 and no AVX-512 too, its weights in 7 bits (0.96 of the time per lego
+//!   640×480 frame on Zen 3, the network alone 0.86–0.91; within 4 of 255, 98% of the
+//!   values equal, 64.9 dB); `NEPHELE_NETWORK=f32` keeps f32.
 //! - **The hash laid out by position.** The perfect spatial hash's stored vertices are
 //!   rearranged into bricks of the vertex grid ([`PshBricks`]): a query's 8 corners are a
 //!   few neighbouring reads instead of 8 hashes to scattered slots, with the same features.
@@ -207,8 +207,8 @@ pub enum Network {
     F32,
     /// The hidden layer in 8 bits ([`MlpKernel::with_int8_hidden`]): CPUs with AVX-512 VNNI
     /// (on lego, 0.94–0.95 of the f32 kernel's time per 640×480 frame, the frame within 2 of
-    /// 255 of its, 65.6 dB), or with AVX2 and no AVX-512 (hidden values in 7 bits; on Zen 3,
-    /// 0.966–0.97 of the time, within 5 of 255, 64.2 dB).
+    /// 255 of its, 65.6 dB), or with AVX2 and no AVX-512 (weights in 7 bits; on Zen 3, 0.96
+    /// of the time, within 4 of 255, 64.9 dB).
     Int8,
 }
 
@@ -221,18 +221,9 @@ impl std::str::FromStr for Network {
 }
 
 impl Network {
-    /// Int8 where the CPU has AVX-512 VNNI, unless `NEPHELE_NETWORK=f32` (or `NEPHELE_SIMD`)
-    /// says f32; with AVX2 alone, f32 unless `NEPHELE_NETWORK=int8` says int8 (its 7-bit
-    /// hidden values err by up to 5 of 255 where the fast renderer otherwise keeps within 2
-    /// of the reference).
+    /// Int8 where the CPU has it, unless `NEPHELE_NETWORK=f32` (or `NEPHELE_SIMD`) says f32.
     pub fn detect() -> Self {
-        let asked = std::env::var("NEPHELE_NETWORK").ok();
-        let int8 = match asked.as_deref() {
-            Some("f32") => false,
-            Some("int8") => true,
-            _ => crate::mlp::simd_vnni(),
-        };
-        if int8 && Self::Int8.available() { Self::Int8 } else { Self::F32 }
+        if std::env::var("NEPHELE_NETWORK").is_ok_and(|v| v == "f32") || !Self::Int8.available() { Self::F32 } else { Self::Int8 }
     }
 
     /// Whether this CPU runs it (within the cap of `NEPHELE_SIMD`).
@@ -259,7 +250,7 @@ impl Network {
         match self {
             Self::F32 => "f32 matrix products",
             Self::Int8 if crate::mlp::simd_vnni() => "hidden layer in 8 bits (AVX-512 VNNI)",
-            Self::Int8 => "hidden layer in 8 bits (AVX2; hidden values in 7 bits)",
+            Self::Int8 => "hidden layer in 8 bits (AVX2; weights in 7 bits)",
         }
     }
 }

@@ -140,32 +140,34 @@ pub struct MlpKernel {
 /// (`vpmaddubsw` then `vpmaddwd`: 32 products into 8 i32 in two instructions).
 #[derive(Debug, Clone, PartialEq)]
 struct Int8Hidden {
-    /// `w1` per output row rounded to −127..=127 of `scale[j]`, four inputs per i32, laid
-    /// out `[block of 16 outputs][group of 4 inputs][output in the block]`.
+    /// `w1` per output row rounded to −W..=W of `scale[j]` (W: [`Self::weight_levels`]),
+    /// four inputs per i32, laid out `[block of 16 outputs][group of 4 inputs][output in
+    /// the block]`.
     w: Vec<i32>,
     /// Output row j's weights are `scale[j] ×` its bytes.
     scale: [f32; HIDDEN],
-    /// The byte a query's largest hidden value maps to: 255 with VNNI; 127 with AVX2,
-    /// whose `vpmaddubsw` sums two u8 × i8 products in an i16 that must not saturate
-    /// (2 · 127 · 127 < 2¹⁵ ≤ 2 · 255 · 127).
-    levels: f32,
+    /// The byte a row's largest weight maps to: 127 with VNNI; 64 with AVX2, whose
+    /// `vpmaddubsw` sums two u8 × i8 products in an i16 that must not saturate
+    /// (2 · 255 · 64 < 2¹⁵ ≤ 2 · 255 · 127).
+    weight_levels: f32,
 }
 
 impl Int8Hidden {
-    fn new(w1t: &[f32], levels: f32) -> Self {
+    fn new(w1t: &[f32], weight_levels: f32) -> Self {
+        let wlev = weight_levels;
         let w1 = |j: usize, i: usize| w1t[i * HIDDEN + j];
-        let scale: [f32; HIDDEN] = std::array::from_fn(|j| (0..HIDDEN).fold(0.0f32, |m, i| m.max(w1(j, i).abs())) / 127.0);
+        let scale: [f32; HIDDEN] = std::array::from_fn(|j| (0..HIDDEN).fold(0.0f32, |m, i| m.max(w1(j, i).abs())) / wlev);
         let w = (0..HIDDEN * HIDDEN / 4)
             .map(|k| {
                 let (block, group, jj) = (k / 256, (k / 16) % 16, k % 16);
                 let j = 16 * block + jj;
                 let byte = |b: usize| {
-                    if scale[j] > 0.0 { (w1(j, 4 * group + b) / scale[j]).round().clamp(-127.0, 127.0) as i8 } else { 0 }
+                    if scale[j] > 0.0 { (w1(j, 4 * group + b) / scale[j]).round().clamp(-wlev, wlev) as i8 } else { 0 }
                 };
                 i32::from_le_bytes([byte(0) as u8, byte(1) as u8, byte(2) as u8, byte(3) as u8])
             })
             .collect();
-        Self { w, scale, levels }
+        Self { w, scale, weight_levels }
     }
 }
 
@@ -213,18 +215,18 @@ impl MlpKernel {
 
     /// This kernel with its hidden layer (two thirds of the multiply-adds) in 8 bits in
     /// [`Self::forward_tile`], if the CPU has AVX-512 VNNI or, without AVX-512, AVX2 (else
-    /// unchanged): each query's hidden vector is scaled to 0..=L by its own largest value
-    /// (L = 255 with VNNI, 127 with AVX2), each output's weights to −127..=127 by their
-    /// largest magnitude, and the products summed exactly in i32. The rounding errs by at
-    /// most half a step of each (1/(2L) of a query's largest hidden value, 1/254 of a row's
-    /// largest weight). On lego the frame is within 2 of 255 of the f32 kernel's with VNNI
-    /// (65.6 dB) and within 5 with AVX2 (64.2 dB; `nephele bench render --networks f32,int8`).
+    /// unchanged): each query's hidden vector is scaled to 0..=255 by its own largest value,
+    /// each output's weights to −W..=W by their largest magnitude (W = 127 with VNNI, 64 with
+    /// AVX2), and the products summed exactly in i32. The rounding errs by at most half a
+    /// step of each (1/510 of a query's largest hidden value, 1/(2W) of a row's largest
+    /// weight). On lego the frame is within 2 of 255 of the f32 kernel's with VNNI (65.6 dB)
+    /// and within 4 with AVX2 (64.9 dB; `nephele bench render --networks f32,int8`).
     pub fn with_int8_hidden(mut self) -> Self {
         #[cfg(target_arch = "x86_64")]
         if simd::vnni() {
-            self.hidden8 = Some(Int8Hidden::new(&self.w1t, 255.0));
-        } else if simd::level() == simd::Level::Avx2 {
             self.hidden8 = Some(Int8Hidden::new(&self.w1t, 127.0));
+        } else if simd::level() == simd::Level::Avx2 {
+            self.hidden8 = Some(Int8Hidden::new(&self.w1t, 64.0));
         }
         self
     }
@@ -585,8 +587,8 @@ pub mod simd {
     }
 
     /// [`dense_int8`] for AVX2: the products by `vpmaddubsw` (pairs of u8 × i8 summed into
-    /// i16; hidden values in 0..=127 so that no sum saturates) and `vpmaddwd` by ones (pairs
-    /// of those into i32), 8 queries per register, blocks of 4 outputs × both halves of the
+    /// i16; weights in −64..=64 so that no sum saturates) and `vpmaddwd` by ones (pairs of
+    /// those into i32), 8 queries per register, blocks of 4 outputs × both halves of the
     /// tile in 8 accumulators.
     #[target_feature(enable = "avx2,fma")]
     fn dense_int8_avx2(q: &super::Int8Hidden, b: &[f32; HIDDEN], h0: &[[f32; TILE]; HIDDEN], active: &Active, y: &mut [[f32; TILE]; HIDDEN]) -> Active {
@@ -600,9 +602,9 @@ pub mod simd {
             largest = [_mm256_max_ps(largest[0], half(row, 0)), _mm256_max_ps(largest[1], half(row, 1))];
             groups |= 1 << (i / 4);
         }
-        // Per lane: bytes = h · L / largest (0 where the query's hidden vector is all 0).
-        let to_byte = largest.map(|l| _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(l, zero), _mm256_div_ps(_mm256_set1_ps(q.levels), l)));
-        let lane_scale = largest.map(|l| _mm256_mul_ps(l, _mm256_set1_ps(1.0 / q.levels)));
+        // Per lane: bytes = h · 255 / largest (0 where the query's hidden vector is all 0).
+        let to_byte = largest.map(|l| _mm256_and_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(l, zero), _mm256_div_ps(_mm256_set1_ps(255.0), l)));
+        let lane_scale = largest.map(|l| _mm256_mul_ps(l, _mm256_set1_ps(1.0 / 255.0)));
         let mut packed = [[_mm256_setzero_si256(); 2]; HIDDEN / 4];
         let mut which = [0u8; HIDDEN / 4];
         let mut n = 0;
@@ -612,7 +614,7 @@ pub mod simd {
             let mut p = [_mm256_setzero_si256(); 2];
             for (byte, row) in h0[4 * g..4 * g + 4].iter().enumerate() {
                 for (h, p) in p.iter_mut().enumerate() {
-                    // 0 ≤ h ≤ largest, so the rounded byte is 0..=L.
+                    // 0 ≤ h ≤ largest, so the rounded byte is 0..=255.
                     let v = _mm256_cvtps_epi32(_mm256_mul_ps(half(row, h), to_byte[h]));
                     *p = _mm256_or_si256(*p, _mm256_sllv_epi32(v, _mm256_set1_epi32(8 * byte as i32)));
                 }
@@ -664,7 +666,7 @@ pub mod simd {
     }
 
     pub fn tile_avx2_int8(k: &MlpKernel, x: &TileInput) -> [[f32; TILE]; 4] {
-        assert!(matches!(level(), Level::Avx2 | Level::Avx512) && k.hidden8.as_ref().is_some_and(|q| q.levels == 127.0));
+        assert!(matches!(level(), Level::Avx2 | Level::Avx512) && k.hidden8.as_ref().is_some_and(|q| q.weight_levels <= 64.0));
         // SAFETY: the CPU has AVX2 and FMA (checked above); the body is safe code.
         unsafe { avx2_int8(k, x) }
     }
@@ -852,7 +854,7 @@ mod tests {
             }
             let k = m.kernel().with_int8_hidden();
             assert!(k.int8_hidden());
-            let levels = k.hidden8.as_ref().map_or(0.0, |q| q.levels);
+            let weight_levels = k.hidden8.as_ref().map_or(0.0, |q| q.weight_levels);
             let mut x = [[0.0f32; TILE]; MAX_INPUT];
             for row in x.iter_mut().take(input) {
                 row.iter_mut().for_each(|v| *v = scale * rng.random_range(-3.0..3.0));
@@ -867,11 +869,11 @@ mod tests {
             for l in 0..TILE {
                 let xs: Vec<f32> = (0..input).map(|i| x[i][l]).collect();
                 let h0: Vec<f32> = (0..HIDDEN).map(|j| (m.b0[j] + (0..input).map(|i| m.w0[j * input + i] * xs[i]).sum::<f32>()).max(0.0)).collect();
-                let lambda = h0.iter().fold(0.0f32, |a, &v| a.max(v)) / levels;
+                let lambda = h0.iter().fold(0.0f32, |a, &v| a.max(v)) / 255.0;
                 let (bound1, var1): (Vec<f32>, Vec<f64>) = (0..HIDDEN)
                     .map(|j| {
                         let row = &m.w1[j * HIDDEN..(j + 1) * HIDDEN];
-                        let s = row.iter().fold(0.0f32, |a, v| a.max(v.abs())) / 127.0;
+                        let s = row.iter().fold(0.0f32, |a, v| a.max(v.abs())) / weight_levels;
                         let size: f32 = m.b1[j].abs() + row.iter().zip(&h0).map(|(w, h)| (w * h).abs()).sum::<f32>();
                         let bound = row.iter().zip(&h0).map(|(w, h)| w.abs() * lambda / 2.0 + h * s / 2.0 + s * lambda / 4.0).sum::<f32>() + 1e-5 * size;
                         let var = row.iter().zip(&h0).map(|(&w, &h)| ((w * lambda).powi(2) + (h * s).powi(2)) as f64 / 12.0).sum::<f64>();

@@ -134,8 +134,8 @@ pub enum BenchCommand {
         marches: Vec<nephele_renderer::fast::March>,
         /// The `cpu` backend with each of these network kernels, frames alternating (with
         /// --marches: every pair): f32, int8 (the hidden layer in 8 bits: AVX-512 VNNI, or
-        /// AVX2 without AVX-512; the PSNR column gives its cost). Default: int8 with VNNI,
-        /// else f32 (`NEPHELE_NETWORK=f32|int8` changes it).
+        /// AVX2 without AVX-512; the PSNR column gives its cost). Default: int8 where the CPU
+        /// has it.
         #[arg(long, value_delimiter = ',')]
         networks: Vec<nephele_renderer::fast::Network>,
         #[command(flatten)]
