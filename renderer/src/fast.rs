@@ -1654,8 +1654,8 @@ mod v3 {
             }
         }
         let rule = Rule { s, step, gap_t, margin: step / 16.0, r };
-        // Whether `fetch8` reads the corners (f16 copy, bricks up to 5³ cells).
-        let row_reads = cells.values_f16.is_some() && density.brick <= 5;
+        // The f16 copy that `fetch8` reads the corners' rows from (bricks up to 5³ cells).
+        let rows_f16 = cells.values_f16.as_deref().filter(|_| density.brick <= 5);
         while active != 0 {
             // Lanes that have finished (or are idle): frozen until the refill below.
             let mut finished = !active & (u64::MAX >> (64 - lanes));
@@ -1683,8 +1683,8 @@ mod v3 {
                         locate8(density, cells, &wave, 16, step),
                         locate8(density, cells, &wave, 24, step),
                     ];
-                    let sampled = if row_reads {
-                        let fetch = |l: &Located| fetch8(density, cells, l.g, l.c, _mm256_max_epi32(l.brick, _mm256_setzero_si256()));
+                    let sampled = if let Some(h) = rows_f16 {
+                        let fetch = |l: &Located| fetch8(density, h, l.g, l.c, _mm256_max_epi32(l.brick, _mm256_setzero_si256()));
                         let rows = [fetch(&at[0]), fetch(&at[1]), fetch(&at[2]), fetch(&at[3])];
                         [
                             sigma_of8(&at[0], sum_rows8(&rows[0]), frozen[0], step),
@@ -2060,21 +2060,9 @@ mod v3 {
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
     unsafe fn density8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3], c: [__m256; 3], first: __m256i) -> __m256 {
-        let r = density.brick as f32;
         let e = density.brick as i32 + 1;
         let zero = _mm256_setzero_ps();
-        // u = clamp(g − cell·r, 0, r), base = min(trunc u, r − 1), f = u − base.
-        let split = |a: usize| {
-            let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
-            let base = _mm256_min_ps(_mm256_cvtepi32_ps(_mm256_cvttps_epi32(u)), _mm256_set1_ps(r - 1.0));
-            (_mm256_sub_ps(u, base), base)
-        };
-        let (fx, bx) = split(0);
-        let (fy, by) = split(1);
-        let (fz, bz) = split(2);
-        // The corner's offset in its brick, in f32 (exact: below (r + 1)³ ≤ 33³).
-        let ef = _mm256_set1_ps(e as f32);
-        let idx0 = _mm256_add_epi32(first, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx)));
+        let ([fx, fy, fz], idx0) = split8(density, g, c, first);
         let one = _mm256_set1_ps(1.0);
         let (hx, hy, hz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
         let mut acc = zero;
@@ -2085,7 +2073,7 @@ mod v3 {
         if let Some(h) = &cells.values_f16 {
             if e <= 6 {
                 // SAFETY: as above (the caller's guarantee).
-                return sum_rows8(&unsafe { rows8(h, e, (fx, fy, fz), idx0) });
+                return sum_rows8(&unsafe { rows8(h, e, [fx, fy, fz], idx0) });
             }
             // Corners (0, y, z) and (1, y, z) as one 32-bit read of two f16s: split,
             // convert, and add in the same corner order as below.
@@ -2118,16 +2106,14 @@ mod v3 {
         lanes: [[__m256i; 4]; 2],
     }
 
-    /// The fractions and first corners of `density8`, from the points `g` of cells `c` in
-    /// bricks `first` (dead lanes read as brick 0).
-    ///
-    /// # Safety
-    /// As [`density8`]; the cubes have an f16 copy and bricks of up to 5³ cells.
+    /// The trilinear fractions `f` and first corners of the samples at fine-grid points `g`
+    /// of cells `c` in bricks `first`, as [`density8`] reads them: u = clamp(g − cell·r, 0, r),
+    /// base = min(trunc u, r − 1), f = u − base, and the corner at `base` (its offset in the
+    /// brick in f32, exact: below (r + 1)³ ≤ 33³).
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    pub(super) unsafe fn fetch8(density: &TextureCubes, cells: &LiveCells, g: [__m256; 3], c: [__m256; 3], first: __m256i) -> Rows8 {
+    fn split8(density: &TextureCubes, g: [__m256; 3], c: [__m256; 3], first: __m256i) -> ([__m256; 3], __m256i) {
         let r = density.brick as f32;
-        let e = density.brick as i32 + 1;
         let zero = _mm256_setzero_ps();
         let split = |a: usize| {
             let u = _mm256_min_ps(_mm256_max_ps(_mm256_sub_ps(g[a], _mm256_mul_ps(c[a], _mm256_set1_ps(r))), zero), _mm256_set1_ps(r));
@@ -2137,11 +2123,21 @@ mod v3 {
         let (fx, bx) = split(0);
         let (fy, by) = split(1);
         let (fz, bz) = split(2);
-        let ef = _mm256_set1_ps(e as f32);
-        let idx0 = _mm256_add_epi32(first, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx)));
-        let h = cells.values_f16.as_deref().expect("the caller checked");
+        let ef = _mm256_set1_ps(r + 1.0);
+        ([fx, fy, fz], _mm256_add_epi32(first, _mm256_cvttps_epi32(_mm256_fmadd_ps(_mm256_fmadd_ps(bz, ef, by), ef, bx))))
+    }
+
+    /// [`density8`]'s row reads for the points `g` of cells `c` in bricks `first` (dead lanes
+    /// read as brick 0), from the f16 copy `h`.
+    ///
+    /// # Safety
+    /// As [`density8`]; `h` is the cubes' f16 copy and their bricks have up to 5³ cells.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
+    pub(super) unsafe fn fetch8(density: &TextureCubes, h: &[u16], g: [__m256; 3], c: [__m256; 3], first: __m256i) -> Rows8 {
+        let (f, idx0) = split8(density, g, c, first);
         // SAFETY: the caller's guarantee.
-        unsafe { rows8(h, e, (fx, fy, fz), idx0) }
+        unsafe { rows8(h, density.brick as i32 + 1, f, idx0) }
     }
 
     /// The row reads of [`density8`] from its corner offsets `idx0`.
@@ -2150,7 +2146,7 @@ mod v3 {
     /// As [`density8`]'s row reads; `e ≤ 6`.
     #[inline]
     #[target_feature(enable = "avx2,fma,sse4.1,sse4.2,bmi1,bmi2,lzcnt,popcnt,f16c")]
-    unsafe fn rows8(h: &[u16], e: i32, (fx, fy, fz): (__m256, __m256, __m256), idx0: __m256i) -> Rows8 {
+    unsafe fn rows8(h: &[u16], e: i32, [fx, fy, fz]: [__m256; 3], idx0: __m256i) -> Rows8 {
         // A lane's 4 corners in a z plane, (x, y), (x + 1, y), (x, y + 1) and (x + 1, y + 1),
         // lie in the 8 f16s from (x, y): one 16-byte load per lane and plane, then (in
         // `sum_rows8`) a 4 × 8 transpose into 8 lanes per corner (0.94 of the time per lego
