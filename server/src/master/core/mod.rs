@@ -110,8 +110,11 @@ pub struct CoreConfig {
     pub pose_latch: f64,
 }
 
-/// Default of [`CoreConfig::pose_latch`].
-pub const POSE_LATCH: f64 = 0.25;
+/// Default of [`CoreConfig::pose_latch`]. With frames longer than the pose period, a latch
+/// of L waits L²·period/2 per frame on average and leaves the started pose (0.5 − L)·period
+/// old at the median: 0.4 and 0.5 let a CPU render be ~1.5 ms longer than 0.25 did and still
+/// hold both 30 fps and a 40 ms median latency (`bench stream`, README).
+pub const POSE_LATCH: f64 = 0.4;
 
 /// Parses `--pose-latch`: a share of the pose period in 0..=0.5.
 pub fn parse_pose_latch(s: &str) -> Result<f64, String> {
