@@ -500,6 +500,9 @@ fn decode_loop(
                 continue;
             }
         };
+        // Decoded now: the copy to RGBA below is this client's, for PSNR and saved frames (a
+        // browser shows the YUV picture as it is), so it is not part of the frame's latency.
+        let decoded_at = Instant::now();
         let (dw, dh) = decoded.dimensions();
         let mut rgba = Vec::new();
         if keep_pixels {
@@ -514,7 +517,7 @@ fn decode_loop(
         let frame = ReceivedFrame {
             pose_seq,
             arrived_at,
-            decoded_at: Instant::now(),
+            decoded_at,
             bytes: au.len(),
             width: width.min(dw as u32),
             height: height.min(dh as u32),
