@@ -289,3 +289,25 @@ fn the_largest_stream_frames_encode() {
     }
 }
 
+
+/// Frames that come at a fraction of the configured rate (a render-bound session) still get
+/// the configured bitrate: the encoder follows their real rate, so each frame gets its share
+/// of the bits instead of a share sized for frames that never come.
+#[test]
+fn slow_frames_get_the_whole_bitrate() {
+    let (w, h) = (640, 480);
+    let cfg = EncoderConfig { threads: 1, ..EncoderConfig::with_bits_per_pixel(w, h, 50, 0.15) };
+    let mut encoder = FrameEncoder::new(cfg).unwrap();
+    let frames = pattern_frames(w, h, 120);
+    let (interval_ms, warm_up) = (50, 40);
+    let mut bytes = 0;
+    for (i, rgba) in frames.iter().enumerate() {
+        let frame = encoder.encode_at(rgba, w, h, i as u64, i as u64 * interval_ms).unwrap();
+        if i >= warm_up {
+            bytes += frame.annex_b.len();
+        }
+    }
+    let seconds = (frames.len() - warm_up) as f64 * interval_ms as f64 / 1000.0;
+    let spent = bytes as f64 * 8.0 / seconds / f64::from(cfg.bitrate_bps);
+    assert!(spent > 0.85, "20 frames a second spent {:.0}% of the bitrate", 100.0 * spent);
+}

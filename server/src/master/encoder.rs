@@ -168,7 +168,19 @@ pub struct FrameEncoder {
     planes: I420,
     frames_encoded: u64,
     idr_pending: bool,
+    /// The frames' real rate: the last frame's time, the mean interval (ms, a running
+    /// average), and the rate the encoder was last told ([`Self::follow_frame_rate`]).
+    last_t_ms: Option<u64>,
+    interval_ms: Option<f64>,
+    told_hz: f32,
 }
+
+/// OpenH264's `ENCODER_OPTION_FRAME_RATE` (`codec_app_def.h`): a float, frames per second.
+const ENCODER_OPTION_FRAME_RATE: i32 = 4;
+
+/// The share by which the real frame rate must differ from the one the encoder was told
+/// before it is told again.
+const FRAME_RATE_SLACK: f64 = 0.1;
 
 impl FrameEncoder {
     pub fn new(cfg: EncoderConfig) -> Result<Self, EncodeError> {
@@ -222,7 +234,40 @@ impl FrameEncoder {
             planes,
             frames_encoded: 0,
             idr_pending: false,
+            last_t_ms: None,
+            interval_ms: None,
+            told_hz: cfg.fps as f32,
         })
+    }
+
+    /// Tells OpenH264 the rate frames really come at (at most the configured one, a running
+    /// average of their intervals), so that its rate control gives each frame its share of
+    /// the bitrate. Told only the configured rate it budgets for frames that never come, even
+    /// with timestamps: lego at 640×480 and render scale 1 (19–30 fps) spent 1.36–2.07 of its
+    /// 2.3 Mbit/s and reached 35.22–35.61 dB against a direct render; told the real rate,
+    /// 2.36–2.47 Mbit/s and 35.99–36.18 dB, at the same encode time (`bench stream`, runs
+    /// alternating). At the auto scale (~49 fps) the PSNR is the same either way.
+    #[allow(unsafe_code)] // one option set through OpenH264's own API
+    fn follow_frame_rate(&mut self, t_ms: u64) {
+        if let Some(last) = self.last_t_ms {
+            let dt = t_ms.saturating_sub(last).max(1) as f64;
+            self.interval_ms = Some(self.interval_ms.map_or(dt, |m| 0.875 * m + 0.125 * dt));
+        }
+        self.last_t_ms = Some(t_ms);
+        let Some(interval) = self.interval_ms else { return };
+        let mut hz = (1000.0 / interval).clamp(1.0, f64::from(self.cfg.fps)) as f32;
+        if self.frames_encoded == 0 || (f64::from(hz) - f64::from(self.told_hz)).abs() <= FRAME_RATE_SLACK * f64::from(self.told_hz) {
+            return;
+        }
+        // SAFETY: the encoder is initialised (a frame was encoded); the option takes a
+        // pointer to an f32 for the duration of the call and changes only the frame rate
+        // that its rate control budgets by.
+        let status = unsafe { self.encoder.raw_api().set_option(ENCODER_OPTION_FRAME_RATE, (&raw mut hz).cast()) };
+        if status == 0 {
+            self.told_hz = hz;
+        } else {
+            tracing::debug!(status, hz, "OpenH264 did not take a frame rate");
+        }
     }
 
     pub fn config(&self) -> &EncoderConfig {
@@ -269,6 +314,7 @@ impl FrameEncoder {
         self.convert(rgba)?;
         let convert_ms = t_convert.elapsed().as_secs_f64() * 1e3;
 
+        self.follow_frame_rate(t_ms);
         let t_encode = Instant::now();
         // Before the first frame OpenH264 is not initialised yet, and that frame is an IDR anyway.
         if std::mem::take(&mut self.idr_pending) && self.frames_encoded > 0 {
