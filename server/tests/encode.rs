@@ -289,7 +289,6 @@ fn the_largest_stream_frames_encode() {
     }
 }
 
-
 /// Frames that come at a fraction of the configured rate (a render-bound session) still get
 /// the configured bitrate: the encoder follows their real rate, so each frame gets its share
 /// of the bits instead of a share sized for frames that never come.

@@ -172,7 +172,7 @@ pub struct FrameEncoder {
     /// average), and the rate the encoder was last told ([`Self::follow_frame_rate`]).
     last_t_ms: Option<u64>,
     interval_ms: Option<f64>,
-    told_hz: f32,
+    told_hz: f64,
 }
 
 /// OpenH264's `ENCODER_OPTION_FRAME_RATE` (`codec_app_def.h`): a float, frames per second.
@@ -236,7 +236,7 @@ impl FrameEncoder {
             idr_pending: false,
             last_t_ms: None,
             interval_ms: None,
-            told_hz: cfg.fps as f32,
+            told_hz: f64::from(cfg.fps),
         })
     }
 
@@ -255,14 +255,15 @@ impl FrameEncoder {
         }
         self.last_t_ms = Some(t_ms);
         let Some(interval) = self.interval_ms else { return };
-        let mut hz = (1000.0 / interval).clamp(1.0, f64::from(self.cfg.fps)) as f32;
-        if self.frames_encoded == 0 || (f64::from(hz) - f64::from(self.told_hz)).abs() <= FRAME_RATE_SLACK * f64::from(self.told_hz) {
+        let hz = (1000.0 / interval).clamp(1.0, f64::from(self.cfg.fps));
+        if self.frames_encoded == 0 || (hz - self.told_hz).abs() <= FRAME_RATE_SLACK * self.told_hz {
             return;
         }
+        let mut option = hz as f32;
         // SAFETY: the encoder is initialised (a frame was encoded); the option takes a
         // pointer to an f32 for the duration of the call and changes only the frame rate
         // that its rate control budgets by.
-        let status = unsafe { self.encoder.raw_api().set_option(ENCODER_OPTION_FRAME_RATE, (&raw mut hz).cast()) };
+        let status = unsafe { self.encoder.raw_api().set_option(ENCODER_OPTION_FRAME_RATE, (&raw mut option).cast()) };
         if status == 0 {
             self.told_hz = hz;
         } else {

@@ -112,8 +112,9 @@ pub struct CoreConfig {
 
 /// Default of [`CoreConfig::pose_latch`]. With frames longer than the pose period, a latch
 /// of L waits L²·period/2 per frame on average and leaves the started pose (0.5 − L)·period
-/// old at the median: 0.4 and 0.5 let a CPU render be ~1.5 ms longer than 0.25 did and still
-/// hold both 30 fps and a 40 ms median latency (`bench stream`, README).
+/// old at the median. Measured (`bench stream`, README), 0.4 lets a CPU render be ~1.5 ms
+/// longer than 0.25 did and still hold both 30 fps and a 40 ms median latency; 0.5 gains
+/// less, as its waits cost frame rate.
 pub const POSE_LATCH: f64 = 0.4;
 
 /// Parses `--pose-latch`: a share of the pose period in 0..=0.5.
