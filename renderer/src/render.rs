@@ -88,6 +88,9 @@ impl CancelFlag {
 pub struct RenderStats {
     pub march_ms: f64,
     pub shade_ms: f64,
+    /// Of `shade_ms`, the network's matrix products (the fast CPU renderer; 0 where not
+    /// timed).
+    pub mlp_ms: f64,
     pub total_ms: f64,
     pub rays: u64,
     pub hits: u64,

@@ -37,6 +37,9 @@ fn agree(what: &str, asset: &Arc<Asset>, views: &[ViewRequest], settings: &Rende
     // The same rays hit and get the same queries, up to the pixels above.
     let close = |a: u64, b: u64| a.abs_diff(b) as f64 <= 1.0 + 1e-3 * b as f64;
     assert!(close(fast.stats.hits, reference.stats.hits) && close(fast.stats.queries, reference.stats.queries), "{what}: {:?} vs {:?}", fast.stats, reference.stats);
+    // The matrix products are timed as part of the network stage, and only where there are queries.
+    let s = fast.stats;
+    assert!(if s.queries > 0 { s.mlp_ms > 0.0 && s.mlp_ms <= s.shade_ms } else { s.mlp_ms == 0.0 }, "{what}: {s:?}");
 }
 
 fn orbit(w: u32, h: u32, azimuth: f64, elevation: f64, distance: f64) -> ViewRequest {

@@ -335,6 +335,8 @@ pub struct RenderBenchRow {
     pub height: u32,
     pub march_ms: f64,
     pub shade_ms: f64,
+    /// Of `shade_ms`, the matrix products (0 where the backend does not time them).
+    pub mlp_ms: f64,
     pub total_ms: f64,
     pub rays_per_s: f64,
     pub hit_fraction: f64,
@@ -374,6 +376,7 @@ pub fn bench_render(variants: &[(String, Box<dyn PreparedAsset>)], sizes: &[(u32
                 height: h,
                 march_ms: s.march_ms,
                 shade_ms: s.shade_ms,
+                mlp_ms: s.mlp_ms,
                 total_ms: s.total_ms,
                 rays_per_s: s.rays as f64 / (s.total_ms / 1e3),
                 hit_fraction: s.hits as f64 / s.rays.max(1) as f64,
@@ -456,8 +459,9 @@ pub fn format_table(rows: &[RenderBenchRow]) -> String {
 }
 
 /// The render table; with the machine's peak FMA rate (GFLOP/s, all threads) also the
-/// network's rate over its stage, the FMA floor of the frame (its network FLOPs at peak) and
-/// how far the frame is above that floor.
+/// network's rate over its stage, the FMA floor of the frame (its network FLOPs at peak), how
+/// far the frame is above that floor, and the matrix products' own time and rate (their
+/// inputs' gathers, view encoding and compositing are the rest of the network stage).
 pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>) -> String {
     let mut out = String::new();
     // The rule and PSNR columns only when some row has knobs set.
@@ -465,9 +469,9 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
     // The PSNR column also when several marches (or backends' variants) are compared.
     let psnr = rules || rows.iter().any(|r| r.psnr_vs_first.is_some());
     let _ = write!(out, "| backend |{} size | ray-march ms | network ms | total ms | Mrays/s | hit fraction | samples/ray | queries/hit |", if rules { " rule |" } else { "" });
-    let _ = write!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor |" } else { "" });
+    let _ = write!(out, "{}", if peak_gflops.is_some() { " network GFLOP/s | % of peak | FMA floor ms | total / floor | MLP ms | MLP % of peak |" } else { "" });
     let _ = writeln!(out, "{}", if rules { " PSNR vs default rule dB |" } else if psnr { " PSNR vs first variant dB |" } else { "" });
-    let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|" } else { "" }, if psnr { "---:|" } else { "" });
+    let _ = writeln!(out, "|---|{}---|---:|---:|---:|---:|---:|---:|---:|{}{}", if rules { "---|" } else { "" }, if peak_gflops.is_some() { "---:|---:|---:|---:|---:|---:|" } else { "" }, if psnr { "---:|" } else { "" });
     for r in rows {
         let hits = (r.hit_fraction * (r.width as f64 * r.height as f64)).max(1.0);
         // Backends that count no samples or queries (the GPU's) get dashes, not zeros.
@@ -493,8 +497,13 @@ pub fn format_table_with_peak(rows: &[RenderBenchRow], peak_gflops: Option<f64>)
                 let rate = gflop / (r.shade_ms / 1e3).max(1e-9);
                 let floor_ms = gflop / peak * 1e3;
                 let _ = write!(out, " {rate:.1} | {:.1}% | {floor_ms:.2} | {:.1}× |", 100.0 * rate / peak, r.total_ms / floor_ms);
+                if r.mlp_ms > 0.0 {
+                    let _ = write!(out, " {:.1} | {:.1}% |", r.mlp_ms, 100.0 * floor_ms / r.mlp_ms);
+                } else {
+                    let _ = write!(out, " – | – |");
+                }
             } else {
-                let _ = write!(out, " – | – | – | – |");
+                let _ = write!(out, " – | – | – | – | – | – |");
             }
         }
         if psnr {
@@ -517,6 +526,7 @@ mod tests {
             height: 48,
             march_ms: 2.0,
             shade_ms: 1.0,
+            mlp_ms: 0.6,
             total_ms: 3.0,
             rays_per_s: 1e6,
             hit_fraction: 0.5,
@@ -529,11 +539,13 @@ mod tests {
 
     #[test]
     fn uncounted_columns_are_dashes_not_zeros() {
-        let table = format_table_with_peak(&[row("cpu", 2000, 4.0), row("wgpu", 0, 0.0)], Some(100.0));
-        let cpu = table.lines().find(|l| l.starts_with("| cpu |")).unwrap();
-        let gpu = table.lines().find(|l| l.starts_with("| wgpu |")).unwrap();
-        // 2000 queries × 6000 MACs × 2 = 0.024 GFLOP: 0.24 ms at 100 GFLOP/s, 3 ms is 12.5×.
-        assert!(cpu.ends_with("| 4.0 | 1.30 | 24.0 | 24.0% | 0.24 | 12.5× |"), "{cpu}");
-        assert!(gpu.ends_with("| – | – | – | – | – | – |"), "{gpu}");
+        let untimed = RenderBenchRow { mlp_ms: 0.0, ..row("cpu-ref", 2000, 4.0) };
+        let table = format_table_with_peak(&[row("cpu", 2000, 4.0), row("wgpu", 0, 0.0), untimed], Some(100.0));
+        let line = |backend: &str| table.lines().find(|l| l.starts_with(&format!("| {backend} |"))).unwrap();
+        // 2000 queries × 6000 MACs × 2 = 0.024 GFLOP: 0.24 ms at 100 GFLOP/s, 3 ms is 12.5×,
+        // and products timed at 0.6 ms run at 40% of the peak.
+        assert!(line("cpu").ends_with("| 4.0 | 1.30 | 24.0 | 24.0% | 0.24 | 12.5× | 0.6 | 40.0% |"), "{}", line("cpu"));
+        assert!(line("wgpu").ends_with("| – | – | – | – | – | – |"), "{}", line("wgpu"));
+        assert!(line("cpu-ref").ends_with("| 12.5× | – | – |"), "{}", line("cpu-ref"));
     }
 }
