@@ -14,10 +14,8 @@ use std::{
     time::{Duration, Instant},
 };
 
-use nephele::{
-    client::{ClientOptions, StreamClient, replay::Trace},
-    wire::PoseMessage,
-};
+use nephele_client::{ClientOptions, StreamClient, replay::Trace};
+use nephele_wire::PoseMessage;
 use nephele_e2e::core_config;
 use nephele_signaling::Mode;
 
@@ -111,7 +109,7 @@ async fn leaving_cancels_the_render_of_a_4k_frame() {
 }
 
 fn nephele_limits_cap() -> usize {
-    nephele::cli::serve::LimitArgs::default_limits().max_connections
+    nephele_limits::ConnLimits::default().max_connections
 }
 
 /// All at once, against a `nephele serve` child: 5,000 idle connections from 100 loopback
@@ -121,7 +119,7 @@ fn nephele_limits_cap() -> usize {
 /// `nephele bench abuse` prints it.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_viewer_keeps_streaming_through_four_attacks_at_once() {
-    use nephele::cli::abuse::{AbuseArgs, Attack, abuse, format_report};
+    use nephele_bench::abuse::{AbuseArgs, Attack, abuse, format_report};
     let args = AbuseArgs { scene: nephele_e2e::fixture_scene(), connections: 5000, addresses: 100, seconds: 5, size: "160x120".into(), fps: 25, attacks: vec![Attack::Idle, Attack::Flood, Attack::Rejoin, Attack::Empty], rejoin_size: "3840x2160".into(), render_scale: "1".into(), admission: "open".into(), attacker_nice: 19, attack_url: None };
     let report = abuse(&args, &nephele_e2e::nephele_bin()).await.expect("the attack runs");
     println!("{}", format_report(&args, &report));

@@ -120,7 +120,7 @@ fn the_viewer_keeps_streaming_through_a_signaling_restart() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_headset_page_streams_both_eyes_in_webxr() {
     use base64::Engine;
-    use nephele::wire::{FrameLayout, check_pose, media::background_of};
+    use nephele_wire::{FrameLayout, background_of, check_pose};
     let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
     assert!(PathBuf::from(&chromium).exists(), "Chromium not found at {chromium}: install the `chromium` package (tests/run does)");
     assert!(repo().join("tests/browser/node_modules/iwer").exists(), "iwer is missing: run `npm ci --prefix tests/browser` (tests/run does)");
@@ -151,7 +151,7 @@ async fn the_headset_page_streams_both_eyes_in_webxr() {
         let direct = catalog.render_scene("trio", v.view, pose.instance, background_of(nephele_signaling::Mode::Vr)).unwrap();
         let r = v.viewport;
         let half: Vec<u8> = (r.y..r.y + r.height).flat_map(|y| rgba[(4 * (y * w + r.x)) as usize..(4 * (y * w + r.x + r.width)) as usize].to_vec()).collect();
-        let psnr = nephele::client::replay::psnr_rgb(&half, &direct.rgba);
+        let psnr = nephele_renderer::render::psnr_rgb(&half, &direct.rgba);
         println!("eye {i}: viewport {r:?}, PSNR {psnr:.2} dB against a direct render");
         assert!(psnr >= 30.0, "eye {i}: {psnr:.2} dB < 30");
         // Mean x of the object's pixels in this eye's image.

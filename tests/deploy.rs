@@ -66,6 +66,9 @@ fn dockerfile_runs_the_binary_and_exposes_its_ports() {
     assert!(exposed.contains(&port_of(flag_value(&args, "--listen").unwrap())));
     assert!(exposed.is_superset(&[8000, 8080, 9100].into()), "{exposed:?}");
     assert!(text.contains("COPY --from=build /src/target/release/nephele"), "the release binary goes into the image");
+    let build = text.lines().find(|l| l.starts_with("RUN cargo build")).expect("a cargo build step");
+    assert!(build.contains("--locked") && build.contains("--no-default-features"), "the image builds from the lock file, without training: {build}");
+    assert!(text.contains(" nasm"), "the builder has nasm for OpenH264's assembly");
 }
 
 #[test]
@@ -208,6 +211,6 @@ fn kubernetes_manifests_use_real_commands_flags_ports_and_names() {
 
 #[test]
 fn the_metric_autoscaling_watches_exists() {
-    let m = nephele::master::metrics::MasterMetrics::new().encode();
+    let m = nephele_master::metrics::MasterMetrics::new().encode();
     assert!(m.contains("nephele_task_queue_depth"), "{m}");
 }

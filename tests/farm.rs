@@ -9,16 +9,14 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::StreamExt;
-use nephele::{
-    client::replay::{ReplayOptions, ReplayReport, Trace, replay},
-    worker::protocol::{self, WorkerAnnouncement},
-};
+use nephele_client::replay::{ReplayOptions, ReplayReport, Trace, replay};
+use nephele_farm::protocol::{self, WorkerAnnouncement};
 use nephele_e2e::{NatsServer, TempDir, core_config, fixture_scene, nephele, spawn_worker, start_nats_master};
 use nephele_signaling::Mode;
 
 fn opts(url: String, scene: &str, size: (u32, u32), fps: u32) -> ReplayOptions {
     ReplayOptions {
-        client: nephele::client::ClientOptions {
+        client: nephele_client::ClientOptions {
             signal_url: url,
             scene: scene.into(),
             mode: Mode::Viewer,

@@ -7,7 +7,7 @@
 use std::time::Instant;
 
 use glam::DVec3;
-use nephele::wire::{FrameLayout, MultiViewPose, PoseMessage, PoseView, Viewport, check_pose};
+use nephele_wire::{FrameLayout, MultiViewPose, PoseMessage, PoseView, Viewport, check_pose};
 use nephele_renderer::{
     Asset, Intrinsics, View,
     views::{QuiltLayout, projection_from_intrinsics},

@@ -12,10 +12,8 @@
 use std::time::Duration;
 
 use glam::{DMat4, DVec3, Vec3};
-use nephele::{
-    client::{ClientOptions, ReceivedFrame, StreamClient, replay::psnr_rgb},
-    wire::{MultiViewPose, PoseMessage, PoseView, ToViewer, Viewport, media::background_of},
-};
+use nephele_client::{ClientOptions, ReceivedFrame, StreamClient, replay::psnr_rgb};
+use nephele_wire::{MultiViewPose, PoseMessage, PoseView, ToViewer, Viewport, background_of};
 use nephele_e2e::{TempDir, core_config, nephele};
 use nephele_renderer::{
     Instance, Intrinsics, View,
@@ -88,7 +86,7 @@ async fn both_eyes_render_in_one_frame_and_match_direct_renders() {
     let mut halves = Vec::new();
     for (i, eye) in eyes.iter().enumerate() {
         // The master re-orthonormalises f32 rotations; render from what it received.
-        let sent = nephele::wire::check_pose(&pose(1), &nephele::wire::FrameLayout::Views { width: 2 * eye_w, height: eye_h }).unwrap();
+        let sent = nephele_wire::check_pose(&pose(1), &nephele_wire::FrameLayout::Views { width: 2 * eye_w, height: eye_h }).unwrap();
         let direct = catalog.render_scene("trio", sent.views[i].view, Instance::default(), background_of(Mode::Vr)).unwrap();
         let half = crop(&frame.rgba, 2 * eye_w, i as u32 * eye_w, 0, eye_w, eye_h);
         let psnr = psnr_rgb(&half, &direct.rgba);
@@ -151,7 +149,7 @@ async fn a_quilt_streams_every_view_in_its_tile() {
 }
 
 /// Centre and radius of the fixture scene's bounds (what the master puts the focal plane on).
-fn catalog_bounds(catalog: &nephele::catalog::Catalog) -> (DVec3, f64) {
+fn catalog_bounds(catalog: &nephele_farm::catalog::Catalog) -> (DVec3, f64) {
     let info = catalog.infos().into_iter().find(|s| s.name == "trio").expect("the fixture scene");
     (info.center.as_dvec3(), f64::from(info.radius))
 }

@@ -2,7 +2,7 @@
 //!
 //! The server (`nephele serve`, CPU backend, the fixture scene) runs in a network namespace
 //! of this test's own, behind a second namespace that routes between it and the client; the
-//! client (`nephele::client`, real WebRTC, real OpenH264, poses sent with
+//! client (`nephele_client`, real WebRTC, real OpenH264, poses sent with
 //! `send_pose_paced`) stays in the test process, in the root namespace. Faults, one after
 //! another on one session, each followed by 3 s of a healed path:
 //!
@@ -33,10 +33,8 @@ use std::{
     time::{Duration, Instant},
 };
 
-use nephele::{
-    client::{ClientNet, ClientOptions, POSE_BACKLOG_FREE, ReceiveCounts, StreamClient, replay::Trace},
-    wire::ToViewer,
-};
+use nephele_client::{ClientNet, ClientOptions, POSE_BACKLOG_FREE, ReceiveCounts, StreamClient, replay::Trace};
+use nephele_wire::ToViewer;
 use nephele_e2e::{Reap, ShowLogOnFailure, fixture_scene, nephele_bin, spawn_serve};
 use nephele_signaling::Mode;
 use tokio::{net::UdpSocket, sync::mpsc};

@@ -134,7 +134,7 @@ async fn streams_survive_a_signaling_restart() {
         time::{Duration, Instant},
     };
 
-    use nephele::client::{ClientOptions, StreamClient, replay::Trace};
+    use nephele_client::{ClientOptions, StreamClient, replay::Trace};
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
     let url = format!("ws://{addr}/signal");

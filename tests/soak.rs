@@ -1,6 +1,6 @@
 //! Soak: a bounded run (minutes) of session churn against `nephele serve` in a child process
 //! (signaling + master + CPU renderer, the fixture scene), with real WebRTC clients
-//! (`nephele::client`, real OpenH264) in this process, up to [`CONCURRENCY`] at a time.
+//! (`nephele_client`, real OpenH264) in this process, up to [`CONCURRENCY`] at a time.
 //!
 //! [`CYCLES`] join → offer → poses → end cycles, after [`WARMUP`] cycles of warm-up and a
 //! settle pause that set the baseline. Cycle `i` ends by `i % 5`:
@@ -36,7 +36,7 @@
 //! climb is the process reaching its working set — the binary's code pages that the rarer
 //! paths touch (timeouts, failed handshakes; `RssFile`) and the heap's own — not objects that
 //! sessions leave behind: those would keep growing. Those figures are from before the server
-//! asked for one malloc arena (`nephele::master::memory::use_one_arena`): with glibc's
+//! asked for one malloc arena (`nephele_master::memory::use_one_arena`): with glibc's
 //! per-thread arenas the settled size was 0.94–1.22× of the baseline run to run; with one
 //! arena, 1.040–1.044 in six runs (baseline ~36 MB, of which 19 MB file pages). The live heap
 //! (`nephele_heap_in_use_bytes`, printed beside the resident set) still creeps by ~0.7 kB per
@@ -56,10 +56,8 @@ use std::{
 };
 
 use futures_util::{SinkExt, StreamExt};
-use nephele::{
-    client::{ClientNet, ClientOptions, StreamClient, replay::Trace},
-    wire::PoseMessage,
-};
+use nephele_client::{ClientNet, ClientOptions, StreamClient, replay::Trace};
+use nephele_wire::PoseMessage;
 use nephele_e2e::{Reap, ShowLogOnFailure, nephele, repo, spawn_serve};
 use nephele_signaling::{Mode, ToClient, ToSignal};
 use tokio::{

@@ -21,14 +21,12 @@ use std::{
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use glam::Mat4;
-use nephele::{
-    catalog::Catalog,
-    client::{
-        ClientOptions, StreamClient,
-        replay::{ReplayOptions, Trace, replay},
-    },
-    wire::{PoseMessage, ToViewer},
+use nephele_client::{
+    ClientOptions, StreamClient,
+    replay::{ReplayOptions, Trace, replay},
 };
+use nephele_farm::catalog::Catalog;
+use nephele_wire::{PoseMessage, ToViewer};
 use nephele_e2e::core_config;
 use nephele_signaling::Mode;
 use serde_json::Value;

@@ -1,4 +1,4 @@
-//! The fast CPU renderer: the i-NOLF rule of DESIGN §3 as the reference
+//! The fast CPU renderer: the i-NOLF rule of docs/architecture.md §3 as the reference
 //! [`crate::CpuBackend`] computes it (`model.rs`), arranged for the machine:
 //!
 //! - **Only where cells are live.** A prepass projects every live index cell (a brick with
@@ -476,7 +476,7 @@ impl LiveCells {
     }
 }
 
-/// The front-to-back rule of DESIGN §3 over samples in order: transmittance, the heaviest
+/// The front-to-back rule of docs/architecture.md §3 over samples in order: transmittance, the heaviest
 /// sample, and whether a stopping rule has fired.
 struct Scan {
     transmittance: f32,

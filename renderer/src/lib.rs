@@ -1,6 +1,6 @@
 //! Nephele renderer: the i-NOLF model of NEPHELE (Luo et al., arXiv 2303.04086) — asset
 //! format, camera and ray maths, a plain CPU reference and a wgpu compute backend that agree
-//! on DESIGN §3, procedural assets, and the forward i-NGP model (`ngp`) that the baseline
+//! on docs/architecture.md §3, procedural assets, and the forward i-NGP model (`ngp`) that the baseline
 //! renders with. Training lives in the `nephele-train` crate. No tokio, no network.
 
 pub mod asset;

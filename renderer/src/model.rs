@@ -1,4 +1,4 @@
-//! The i-NOLF per-ray maths of DESIGN §3, written once in plain Rust. The CPU reference
+//! The i-NOLF per-ray maths of docs/architecture.md §3, written once in plain Rust. The CPU reference
 //! renders with it directly; the WGSL kernels (`shaders/*.wgsl`) transcribe the same steps
 //! and are tested against it.
 //!
@@ -11,7 +11,7 @@
 //! 3. at the hit: diffuse cubes → `c_d`, tint; PSH → E_s; SH4(dir) → E_v; MLP → `c_s`, α;
 //!    `c = clamp(c_d + t·c_s, 0, 1)`, pixel `= α c + (1 − α) bg`.
 //!
-//! **Adaptive multi-hit** (DESIGN §3, beyond the paper; [`HitRule`]): the same march also
+//! **Adaptive multi-hit** (docs/architecture.md §3, beyond the paper; [`HitRule`]): the same march also
 //! splits the weights into segments ([`Segments`]): a sample more than `gap_steps` steps
 //! past the current segment's peak starts a new segment. The segment holding the
 //! max-weight sample is the primary hit (at that sample, exactly the one-hit rule); every

@@ -1,4 +1,4 @@
-//! Numerical stability at the extremes of DESIGN §7, on every backend (the CPU reference, the
+//! Numerical stability at the extremes of docs/architecture.md §7, on every backend (the CPU reference, the
 //! fast CPU renderer, wgpu): cameras inside the box,
 //! on its face and 10⁶ units away; axis-parallel rays with exactly zero components; σ = 0 and
 //! σ saturating f16; 1×1 and 8K viewports; NaN/Inf/non-rigid poses and absurd sizes → errors;

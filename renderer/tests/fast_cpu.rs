@@ -1,4 +1,4 @@
-//! The fast CPU renderer against the CPU reference (DESIGN §3): on the shipped lego asset and
+//! The fast CPU renderer against the CPU reference (docs/architecture.md §3): on the shipped lego asset and
 //! procedural ones, one-hit and multi-hit, several step scales, a batch of views of mixed
 //! sizes, and views where the footprint prepass cannot help (camera inside the box). Its σ is
 //! the reference's to the bit and its network differs only by fused multiply-add rounding, so

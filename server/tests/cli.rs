@@ -179,8 +179,8 @@ fn synth_writes_a_dataset_that_dataset_info_reads() {
 #[test]
 fn shipped_traces_are_the_built_in_ones() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/traces");
-    for name in nephele::client::replay::BUILTIN_TRACES {
-        let shipped = nephele::client::replay::Trace::load(&root.join(format!("{name}.json"))).unwrap();
-        assert_eq!(shipped, nephele::client::replay::Trace::builtin(name).unwrap(), "{name}: regenerate with `nephele traces`");
+    for name in nephele_client::replay::BUILTIN_TRACES {
+        let shipped = nephele_client::replay::Trace::load(&root.join(format!("{name}.json"))).unwrap();
+        assert_eq!(shipped, nephele_client::replay::Trace::builtin(name).unwrap(), "{name}: regenerate with `nephele traces`");
     }
 }

@@ -1,16 +1,18 @@
 //! Nephele signaling: pairs browser/replay clients with master (render) nodes and
 //! relays WebRTC SDP and ICE between them over one websocket endpoint, `/signal`.
 //!
-//! - [`protocol`]: the JSON messages, shared with the master node, the replay client
-//!   and (by hand) the web page.
+//! - [`protocol`]: the JSON messages (the `nephele-protocol` crate), shared with the master
+//!   node, the replay client and the web page.
 //! - [`hub`]: the sans-IO state machine that pairs and routes.
 //! - [`server`]: the axum edge: websockets, `/status`, the heartbeat tick.
 //!
 //! This crate knows nothing about rendering.
 
+/// The messages, defined once in `nephele-protocol` (shared with masters and clients).
+pub use nephele_protocol as protocol;
+
 pub mod hub;
 pub mod net;
-pub mod protocol;
 pub mod server;
 
 pub use hub::{ConnId, Hub, HubConfig, HubStats, MasterStats, Outgoing, SignalError};

@@ -7,19 +7,16 @@ use std::{
     sync::Arc,
 };
 
-use nephele::{
-    catalog::Catalog,
-    master::{
-        MasterConfig,
-        driver::NatsSettings,
-        compositor::ComposeChoice,
-        encoder::DEFAULT_BITS_PER_PIXEL,
-        core::{Admission, CoreConfig, scheduler::RenderScale},
-    },
+use nephele_core::{Admission, CoreConfig, scheduler::RenderScale};
+use nephele_farm::{catalog::Catalog, worker::NatsAuth};
+use nephele_master::{
+    MasterConfig,
+    compositor::ComposeChoice,
+    driver::NatsSettings,
+    encoder::DEFAULT_BITS_PER_PIXEL,
     web::{self, LocalServer},
-    wire::media::RtcConfig,
-    worker::NatsAuth,
 };
+use nephele_rtc::RtcConfig;
 use nephele_renderer::{CpuBackend, RenderSettings};
 
 /// The repository root.

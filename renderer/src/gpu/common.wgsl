@@ -1,6 +1,6 @@
 // common.wgsl — bindings, structs and ray helpers shared by the i-NOLF kernels.
 // Keep the structs in sync with `gpu/mod.rs` (`Params`, `GpuView`, `Hit`).
-// Maths mirrors `model.rs` / `camera.rs` (DESIGN §3); see there for the derivations.
+// Maths mirrors `model.rs` / `camera.rs` (docs/architecture.md §3); see there for the derivations.
 
 const BIG: f32 = 1e30;
 const TINY_DIR: f32 = 1e-12;

@@ -1,4 +1,4 @@
-// march.wgsl — i-NOLF pass 1 (DESIGN §3 steps 1–3): clip each pixel's ray to the box, DDA over
+// march.wgsl — i-NOLF pass 1 (docs/architecture.md §3 steps 1–3): clip each pixel's ray to the box, DDA over
 // the density index grid, fixed-step samples of the density atlas (hardware trilinear), the
 // max-weight hit and coarse opacity with the exact early stop, and with `max_hits` > 1 the
 // multi-hit segments. Misses get the background; hits are appended to `hits` for the shading

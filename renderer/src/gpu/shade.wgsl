@@ -1,4 +1,4 @@
-// shade.wgsl — i-NOLF pass 2 (DESIGN §3 steps 4–8), one thread per hit ray only: diffuse
+// shade.wgsl — i-NOLF pass 2 (docs/architecture.md §3 steps 4–8), one thread per hit ray only: diffuse
 // atlas (hardware trilinear) → c_d and tint; perfect spatial hash (Lefebvre & Hoppe 2006)
 // → E_s; SH degree 4 → E_v; specular MLP [E_s, E_v, α_c] → 64 → 64 → 4; composite over the
 // view's background; a multi-hit ray's queries are blended by their weights. Mirrors

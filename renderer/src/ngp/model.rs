@@ -3,7 +3,7 @@
 //!
 //! 1. march each ray through the scene box with the fixed step `δ = box diagonal /
 //!    steps_per_diagonal`, samples at `t₀ + (k + u)δ` (`u` the ray's jitter: uniform when
-//!    training, ½ when rendering, the renderer's rule of DESIGN §3), kept only in occupied
+//!    training, ½ when rendering, the renderer's rule of docs/architecture.md §3), kept only in occupied
 //!    cells of the [`OccupancyGrid`];
 //! 2. σ front to back, `α_i = 1 − exp(−σ_i δ)`, `T_{i+1} = T_i (1 − α_i)`, stopping once
 //!    `T < early_stop_transmittance` (σ is evaluated a window of samples at a time, so the

@@ -1,4 +1,4 @@
-//! The i-NOLF stages of training (NEPHELE §4; DESIGN §4 stages 2–4): distil a trained i-NGP
+//! The i-NOLF stages of training (NEPHELE §4; docs/architecture.md §4 stages 2–4): distil a trained i-NGP
 //! field (the teacher) into an i-NOLF asset.
 //!
 //! 2. **Geometry.** Bake density texture cubes from the teacher's σ over a box fitted to its

@@ -1,4 +1,4 @@
-//! Nephele training: images → i-NOLF asset, on the CPU (DESIGN §4). Training data, the i-NGP
+//! Nephele training: images → i-NOLF asset, on the CPU (docs/architecture.md §4). Training data, the i-NGP
 //! teacher (Müller et al., "Instant Neural Graphics Primitives", SIGGRAPH 2022; stage 1) and
 //! the distillation into an asset (stages 2–4). The forward i-NGP model (hash grid, MLPs,
 //! field, occupancy grid, volume rendering) is the renderer's [`nephele_renderer::ngp`]; this

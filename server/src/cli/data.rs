@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 
-use crate::assets::parse_size;
+use nephele_farm::assets::parse_size;
 
 #[derive(clap::Args)]
 pub struct SynthArgs {
@@ -61,7 +61,7 @@ pub struct EvalArgs {
     teacher: Option<PathBuf>,
     /// An asset's render knobs (the held-out score of a speed-for-accuracy setting).
     #[command(flatten)]
-    knobs: super::RenderKnobs,
+    knobs: nephele_farm::assets::RenderKnobs,
 }
 
 pub fn synth(args: SynthArgs) -> Result<()> {

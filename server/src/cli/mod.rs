@@ -1,18 +1,15 @@
 //! The `nephele` command line: one module per group of subcommands, each holding its
 //! arguments and its body; `main.rs` only parses and dispatches.
 
-pub mod abuse;
-pub mod bench;
+#[cfg(feature = "train")]
 pub mod data;
-pub mod farm;
-pub mod plot;
-pub mod quilt;
 pub mod render;
 pub mod replay;
 pub mod serve;
-pub mod tradeoff;
+#[cfg(feature = "train")]
 pub mod train;
-pub mod users;
+
+use nephele_bench as bench;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -47,15 +44,19 @@ pub enum Command {
     /// Write the built-in pose traces (orbit, zoom, shake) as JSON into a directory.
     Traces(replay::TracesArgs),
     /// Write an analytic (ray-traced) scene as a NeRF-synthetic dataset with exact alpha.
+    #[cfg(feature = "train")]
     Synth(data::SynthArgs),
     /// Check a dataset folder (NeRF-synthetic or instant-ngp) and print its splits.
+    #[cfg(feature = "train")]
     DatasetInfo(data::DatasetInfoArgs),
     /// Train an asset from a posed-image dataset on the CPU: the i-NGP field, then the i-NOLF
     /// stages, checkpointed in the work directory.
+    #[cfg(feature = "train")]
     Train(train::TrainOptions),
     /// Render every view of a dataset split with an asset (.nolf) or an i-NGP checkpoint over
     /// white; print per-view and mean PSNR / SSIM, optionally write ground truth | render |
     /// |error|×4 PNGs.
+    #[cfg(feature = "train")]
     Eval(data::EvalArgs),
     /// Benchmarks that print tables.
     Bench {
@@ -76,48 +77,14 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Info(args) => render::info(args),
         Command::Replay(args) => replay::replay(args),
         Command::Traces(args) => replay::traces(args),
+        #[cfg(feature = "train")]
         Command::Synth(args) => data::synth(args),
+        #[cfg(feature = "train")]
         Command::DatasetInfo(args) => data::dataset_info(args),
+        #[cfg(feature = "train")]
         Command::Train(opts) => train::train(&opts).map(|_| ()),
+        #[cfg(feature = "train")]
         Command::Eval(args) => data::eval(args),
         Command::Bench { what } => bench::run(what),
-    }
-}
-
-/// The renderer's speed-for-accuracy knobs, as flags.
-#[derive(clap::Args, Debug, Clone)]
-pub struct RenderKnobs {
-    /// Step-size multiplier (speed/accuracy knob; keep it equal on every worker).
-    #[arg(long, default_value_t = 1.0)]
-    pub step_scale: f32,
-    /// Multi-hit threshold τ: a further query for each part of a ray's weight holding at
-    /// least τ of its opacity (1 = one hit per ray); default: the asset's own.
-    #[arg(long)]
-    pub hit_tau: Option<f32>,
-    /// Most network queries per ray (1..=3); default: the asset's own.
-    #[arg(long)]
-    pub max_hits: Option<u32>,
-    /// Stop a ray's march once its transmittance falls below this (its coarse opacity is
-    /// then within this of the whole ray's): larger is faster and less exact (`nephele bench
-    /// render` prints the PSNR against the default rule); default: the asset's own, the
-    /// threshold it was trained with.
-    #[arg(long)]
-    pub early_stop: Option<f32>,
-}
-
-impl RenderKnobs {
-    pub fn settings(&self) -> Result<nephele_renderer::RenderSettings> {
-        let s = nephele_renderer::RenderSettings { step_scale: self.step_scale, hit_tau: self.hit_tau, max_hits: self.max_hits, early_stop: self.early_stop, ..Default::default() };
-        if s.validate().is_err() {
-            anyhow::bail!(
-                "--step-scale must be in [0.05, 20], --hit-tau in [0, 1], --max-hits in 1..={} and --early-stop in [0, 1) (got {}, {:?}, {:?}, {:?})",
-                nephele_renderer::model::MAX_HITS,
-                self.step_scale,
-                self.hit_tau,
-                self.max_hits,
-                self.early_stop
-            );
-        }
-        Ok(s)
     }
 }

@@ -11,7 +11,7 @@ use nephele_renderer::{
     views::{QuiltLayout, focal_distance},
 };
 
-use crate::{
+use nephele_farm::{
     assets::{BackendChoice, DEFAULT_ASSET, load_asset, make_backend, parse_color, parse_size},
     catalog::Catalog,
 };
@@ -54,7 +54,7 @@ pub struct RenderArgs {
     #[arg(long)]
     alpha: Option<PathBuf>,
     #[command(flatten)]
-    knobs: super::RenderKnobs,
+    knobs: nephele_farm::assets::RenderKnobs,
     /// Render a Looking Glass quilt of COLSxROWS views (e.g. 5x9) instead of one view;
     /// `--size` is then one tile. Views are the camera moved sideways with off-axis frusta,
     /// view 0 bottom-left (see `nephele_renderer::views`); all rendered in one batch. The
@@ -119,7 +119,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         Some(q) => q.cameras(&view, focal_distance(&view, DVec3::ZERO, 1e-3)),
         None => vec![view],
     };
-    let is_scene = args.asset.ends_with(".json") || crate::assets::BUILTIN_SCENE_FILES.iter().any(|(n, _)| args.asset == format!("builtin:{n}"));
+    let is_scene = args.asset.ends_with(".json") || nephele_farm::assets::BUILTIN_SCENE_FILES.iter().any(|(n, _)| args.asset == format!("builtin:{n}"));
     let (frames, s) = if is_scene {
         // A scene: every object rendered and composed by depth (timings summed).
         let catalog = Catalog::load(std::slice::from_ref(&args.asset), backend.as_ref(), settings)?;

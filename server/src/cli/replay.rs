@@ -5,15 +5,13 @@ use std::path::PathBuf;
 
 use anyhow::{Result, bail};
 use nephele_renderer::{Backend as _, CpuBackend};
-use nephele_signaling::Mode;
+use nephele_protocol::Mode;
 
-use crate::{
-    assets::{load_asset, parse_size},
-    client::{
-        ClientOptions,
-        replay::{self, BUILTIN_TRACES, Trace},
-    },
+use nephele_client::{
+    ClientOptions,
+    replay::{self, BUILTIN_TRACES, Trace},
 };
+use nephele_farm::assets::{load_asset, parse_size};
 
 #[derive(clap::Args)]
 pub struct ReplayArgs {
@@ -41,7 +39,7 @@ pub struct ReplayArgs {
     #[arg(long, default_value_t = 10)]
     quality_every: usize,
     #[command(flatten)]
-    knobs: super::RenderKnobs,
+    knobs: nephele_farm::assets::RenderKnobs,
     /// Save the decoded frames as PNG here.
     #[arg(long)]
     save: Option<PathBuf>,
@@ -56,17 +54,12 @@ pub struct TracesArgs {
     out: PathBuf,
 }
 
-/// A built-in trace by name, or a trace file.
-pub fn load_trace(spec: &str) -> Result<Trace> {
-    if BUILTIN_TRACES.contains(&spec) { Trace::builtin(spec) } else { Trace::load(std::path::Path::new(spec)) }
-}
-
 pub fn parse_mode(s: &str) -> Result<Mode> {
     serde_json::from_value(serde_json::Value::String(s.into())).map_err(|_| anyhow::anyhow!("mode {s:?}: use viewer or ar"))
 }
 
 pub fn replay(args: ReplayArgs) -> Result<()> {
-    let trace = load_trace(&args.trace)?;
+    let trace = Trace::from_spec(&args.trace)?;
     let (width, height) = parse_size(&args.size)?;
     let mode = parse_mode(&args.mode)?;
     let settings = args.knobs.settings()?;

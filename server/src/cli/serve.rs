@@ -7,21 +7,17 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use nephele_limits::ConnLimits;
 
-use crate::{
+use nephele_core::{Admission, CoreConfig, scheduler::RenderScale};
+use nephele_farm::{
     assets::{BackendChoice, DEFAULT_SCENES, make_backend},
     catalog::Catalog,
-    master::{
-        self, MasterConfig,
-        driver::NatsSettings,
-        compositor::ComposeChoice,
-        encoder::DEFAULT_BITS_PER_PIXEL,
-        core::{Admission, CoreConfig, scheduler::RenderScale},
-        metrics::MasterMetrics,
-    },
-    web,
-    wire::media::RtcConfig,
-    worker::{NatsAuth, WorkerConfig, protocol::Farm},
+    protocol::Farm,
+    worker::{NatsAuth, WorkerConfig},
 };
+use nephele_master::{
+    self as master, MasterConfig, compositor::ComposeChoice, driver::NatsSettings, encoder::DEFAULT_BITS_PER_PIXEL, metrics::MasterMetrics, web,
+};
+use nephele_rtc::RtcConfig;
 
 /// What a master serves and how it schedules.
 #[derive(clap::Args, Debug, Clone)]
@@ -33,7 +29,7 @@ pub struct MasterOptions {
     #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendChoice,
     #[command(flatten)]
-    pub knobs: super::RenderKnobs,
+    pub knobs: nephele_farm::assets::RenderKnobs,
     /// Sessions this master accepts at once (a hard cap; admission by load comes first).
     #[arg(long, default_value_t = 8)]
     pub capacity: u32,
@@ -61,7 +57,7 @@ pub struct MasterOptions {
     pub batching: bool,
     /// A frame whose pose is nearly a pose period old may wait up to this share of the
     /// period for the next pose, so it shows a fresh one (0: never waits; at most 0.5).
-    #[arg(long, default_value_t = crate::master::core::POSE_LATCH, value_parser = crate::master::core::parse_pose_latch)]
+    #[arg(long, default_value_t = nephele_core::POSE_LATCH, value_parser = nephele_core::parse_pose_latch)]
     pub pose_latch: f64,
     /// `load`: refuse joins while a user starves or when the measured farm could not serve
     /// the newcomer at the lowest scale (NEPHELE Algorithm 1); `open`: admit up to
@@ -123,7 +119,7 @@ impl MasterOptions {
     /// Loads the scenes on the chosen backend and builds the master's configuration.
     pub fn load(&self, name: &str) -> Result<(Arc<Catalog>, MasterConfig)> {
         let render_scale = RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?;
-        crate::master::encoder::check_bits_per_pixel(self.bits_per_pixel).map_err(anyhow::Error::msg)?;
+        nephele_master::encoder::check_bits_per_pixel(self.bits_per_pixel).map_err(anyhow::Error::msg)?;
         let nats = self.nats.settings()?;
         // With a NATS farm the workers render; the master only needs the scenes' shapes.
         let backend = if nats.is_some() { Box::new(nephele_renderer::FastCpuBackend) } else { make_backend(self.backend)? };
@@ -314,10 +310,8 @@ pub fn master(args: MasterArgs) -> Result<()> {
         if let Some(listen) = &args.metrics_listen {
             let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
             println!("metrics on http://{}/metrics", listener.local_addr()?);
-            let m = Arc::clone(&metrics);
-            let app = axum::Router::new().route("/metrics", axum::routing::get(move || async move { m.encode() }));
             // Bind it to loopback or a private network: it has no token of its own.
-            tokio::spawn(async move { axum::serve(listener, app).await });
+            tokio::spawn(web::serve_metrics(listener, Arc::clone(&metrics)));
         }
         master::run(args.signal, cfg, catalog, metrics).await
     })
@@ -354,7 +348,7 @@ pub struct WorkerArgs {
     #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendChoice,
     #[command(flatten)]
-    pub knobs: super::RenderKnobs,
+    pub knobs: nephele_farm::assets::RenderKnobs,
     #[command(flatten)]
     pub nats: NatsArgs,
 }
@@ -371,5 +365,5 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
     let host: String = host.chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-').take(32).collect();
     let id = args.id.clone().unwrap_or_else(|| format!("{}-{host}-{}", args.farm.as_str(), std::process::id()));
     let cfg = WorkerConfig { nats_url: url, auth: args.nats.auth()?, farm: args.farm, id };
-    tokio::runtime::Runtime::new()?.block_on(crate::worker::run(cfg, catalog))
+    tokio::runtime::Runtime::new()?.block_on(nephele_farm::worker::run(cfg, catalog))
 }
