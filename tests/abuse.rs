@@ -120,7 +120,7 @@ fn nephele_limits_cap() -> usize {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_viewer_keeps_streaming_through_four_attacks_at_once() {
     use nephele_bench::abuse::{AbuseArgs, Attack, abuse, format_report};
-    let args = AbuseArgs { scene: nephele_e2e::fixture_scene(), connections: 5000, addresses: 100, seconds: 5, size: "160x120".into(), fps: 25, attacks: vec![Attack::Idle, Attack::Flood, Attack::Rejoin, Attack::Empty], rejoin_size: "3840x2160".into(), render_scale: "1".into(), admission: "open".into(), attacker_nice: 19, attack_url: None };
+    let args = AbuseArgs { scene: nephele_e2e::fixture_scene(), connections: 5000, addresses: 100, seconds: 5, size: "160x120".into(), fps: 25, attacks: vec![Attack::Idle, Attack::Flood, Attack::Rejoin, Attack::Empty], rejoin_size: "3840x2160".into(), render_scale: "1".into(), admission: nephele_core::Admission::Open, attacker_nice: 19, attack_url: None, json: false };
     let report = abuse(&args, &nephele_e2e::nephele_bin()).await.expect("the attack runs");
     println!("{}", format_report(&args, &report));
     assert!(report.viewer_errors.is_empty(), "the viewer heard: {:?}", report.viewer_errors);

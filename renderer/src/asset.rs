@@ -86,16 +86,16 @@ pub struct MarchMeta {
     pub alpha_min: f32,
     /// Which parts of a ray's weight get a network query (absent in older assets: one hit).
     #[serde(default)]
-    pub hits: crate::model::HitRule,
+    pub hits: crate::rule::HitRule,
     /// The march stops once transmittance falls below this: the threshold the asset was
     /// trained with, so its coarse opacities are the ones its network learnt (absent in older
-    /// assets: [`crate::model::DEFAULT_EARLY_STOP`]).
+    /// assets: [`crate::rule::DEFAULT_EARLY_STOP`]).
     #[serde(default = "default_early_stop")]
     pub early_stop: f32,
 }
 
 fn default_early_stop() -> f32 {
-    crate::model::DEFAULT_EARLY_STOP
+    crate::rule::DEFAULT_EARLY_STOP
 }
 
 /// The `nolf` JSON in the safetensors header (followed there by the tensor checksums).

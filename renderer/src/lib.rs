@@ -16,6 +16,7 @@ pub mod ngp;
 pub mod procedural;
 pub mod psh;
 pub mod render;
+pub mod rule;
 pub mod scene;
 pub mod sh;
 pub mod views;

@@ -23,15 +23,13 @@
 
 use glam::{IVec3, Vec3};
 
+pub use crate::rule::{DEFAULT_EARLY_STOP, HitRule, MAX_HITS};
 use crate::{asset::{Asset, MarchMeta}, cubes::Aabb, cubes::TextureCubes, mlp::sigmoid, sh::sh4};
 
 /// Stand-in for infinity that survives GPU fast-math (WGSL does not promise IEEE infinities).
 pub const BIG: f32 = 1e30;
 /// Direction components smaller than this count as zero.
 pub const TINY_DIR: f32 = 1e-12;
-
-/// The early stop of assets that name none (every asset made before December 2026).
-pub const DEFAULT_EARLY_STOP: f32 = 1e-3;
 
 /// Runtime knobs users trade speed against accuracy with.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -91,39 +89,8 @@ impl RenderSettings {
     }
 }
 
-/// Most queries one ray can get (the size of the per-ray hit arrays, CPU and GPU).
-pub const MAX_HITS: usize = 3;
 /// Segments remembered while marching; the queried ones are chosen from them at the end.
 pub const MAX_SEGMENTS: usize = 4;
-
-/// Which segments of a ray's weight get a network query (see the module notes).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct HitRule {
-    /// A segment other than the primary is queried if it holds at least `tau · α_c` of the
-    /// weight; 1 = one hit per ray.
-    pub tau: f32,
-    /// Most queries per ray, 1..=[`MAX_HITS`].
-    pub max_hits: u32,
-    /// A sample more than this many steps past the current segment's peak starts a new one.
-    pub gap_steps: f32,
-}
-
-impl Default for HitRule {
-    /// One hit per ray (NEPHELE's i-NOLF).
-    fn default() -> Self {
-        Self { tau: 1.0, max_hits: 1, gap_steps: 3.0 }
-    }
-}
-
-impl HitRule {
-    pub fn one_hit(&self) -> bool {
-        self.tau >= 1.0 || self.max_hits <= 1
-    }
-    pub fn validate(&self) -> Result<(), String> {
-        let ok = (0.0..=1.0).contains(&self.tau) && (1..=MAX_HITS as u32).contains(&self.max_hits) && self.gap_steps.is_finite() && (0.5..=64.0).contains(&self.gap_steps);
-        if ok { Ok(()) } else { Err(format!("hit rule out of range (τ in [0, 1], max_hits 1..={MAX_HITS}, gap_steps 0.5..=64): {self:?}")) }
-    }
-}
 
 /// Ray/box intersection `[t_near, t_far]`, or `None`. Zero direction components are handled
 /// without infinities or NaN.

@@ -184,3 +184,19 @@ fn shipped_traces_are_the_built_in_ones() {
         assert_eq!(shipped, nephele_client::replay::Trace::builtin(name).unwrap(), "{name}: regenerate with `nephele traces`");
     }
 }
+
+/// A headless machine has no `XDG_RUNTIME_DIR`; probing Vulkan adapters must not make the
+/// Wayland client library print its complaint: the user sees only what Nephele says.
+#[test]
+fn first_start_without_a_runtime_dir_prints_only_our_words() {
+    let out = std::env::temp_dir().join(format!("nephele-xdg-{}.png", std::process::id()));
+    let o = Command::new(env!("CARGO_BIN_EXE_nephele"))
+        .args(["render", "builtin:trio-small", "--backend", "gpu", "--size", "8x8", "--out", out.to_str().unwrap()])
+        .env_remove("XDG_RUNTIME_DIR")
+        .output()
+        .expect("runs");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(!stderr.contains("XDG_RUNTIME_DIR") && !String::from_utf8_lossy(&o.stdout).contains("XDG_RUNTIME_DIR"), "{stderr}");
+    let _ = std::fs::remove_file(out);
+}

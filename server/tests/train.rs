@@ -184,10 +184,11 @@ fn bench_tradeoff_prints_the_table_and_plots_the_sweep() {
     let out = dir.path("bench");
     let o = nephele(&[
         "bench", "tradeoff", &data, "--teacher", &dir.path("a/ngp.ckpt"), "--downscale", "1", "--nolf-steps", "20", "--psh", "64,256",
-        "--size", "48x48", "--views", "1", "--distances", "3", "--taus", "1,0.02", "--out", &out,
+        "--size", "48x48", "--views", "1", "--distances", "3", "--taus", "1,0.02", "--out", &out, "--json",
     ]);
-    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-    assert!(o.status.success() && !stderr.contains("panicked"), "{stderr}");
+    // With --json the table goes to stderr and the report to stdout.
+    let (json_out, stdout) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success() && !stdout.contains("panicked"), "{stdout}");
     // Every row of the paper's ablation, in its order, the PSH sizes, the τ rows, the oracles.
     let rows = [
         "| i-NGP |",
@@ -211,6 +212,7 @@ fn bench_tradeoff_prints_the_table_and_plots_the_sweep() {
     }
     assert!(stdout.contains("queries per hit ray") && stdout.contains("Fig. 13"), "{stdout}");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("bench/tradeoff.json")).unwrap()).unwrap();
+    assert_eq!(serde_json::from_str::<serde_json::Value>(&json_out).unwrap(), report, "--json prints what tradeoff.json holds");
     let json_rows = report["rows"].as_array().unwrap();
     assert_eq!(json_rows.len(), rows.len());
     assert_eq!(report["sweep"].as_array().unwrap().len(), 3);
@@ -231,6 +233,29 @@ fn bench_tradeoff_prints_the_table_and_plots_the_sweep() {
     assert!(cov[2] > cov[0], "{cov:?}");
     assert_eq!(png_size(&dir.0.join("bench/tradeoff_distance.png")), (720, 460));
     assert_eq!(png_size(&dir.0.join("bench/tradeoff_psnr_ms.png")), (720, 460));
+
+    // `bench quilt` with the same teacher, at a 2×2 quilt of tiny tiles on both backends,
+    // and the stereo stream: every figure finite, the table on stderr.
+    let o = nephele(&[
+        "bench", "quilt", "--asset", "builtin:trio-small", "--teacher", &dir.path("a/ngp.ckpt"), "--quilt", "2x2", "--tile", "16x24", "--backends", "cpu,gpu",
+        "--runs", "1", "--stereo-size", "64x32", "--stereo-poses", "30", "--json",
+    ]);
+    let (json_out, table) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success() && !table.contains("panicked"), "{table}");
+    assert!(table.contains("| backend | i-NOLF one task ms |"), "{table}");
+    let quilt: serde_json::Value = serde_json::from_str(&json_out).unwrap_or_else(|e| panic!("{e}: {json_out}"));
+    assert_eq!(quilt["views"], 4);
+    let quilt_rows = quilt["rows"].as_array().unwrap();
+    assert_eq!(quilt_rows.len(), 2, "{quilt:#}");
+    for row in quilt_rows {
+        for key in ["nolf_batched_ms", "nolf_separate_ms", "ngp_ms", "speedup_vs_ngp", "speedup_batched"] {
+            assert!(row[key].as_f64().is_some_and(|v| v > 0.0), "{key} in {row}");
+        }
+    }
+    for key in ["mono_fps", "stereo_fps", "latency_ratio", "stereo_latency_ms.p50"] {
+        let v = key.split('.').fold(&quilt["stereo"], |v, k| &v[k]);
+        assert!(v.as_f64().is_some_and(|v| v > 0.0), "stereo {key} in {quilt:#}");
+    }
 }
 
 /// An instant-ngp `transforms.json` with `aabb_scale` trains in the grown box.

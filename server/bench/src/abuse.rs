@@ -52,8 +52,8 @@ pub struct AbuseArgs {
     /// The server's render scale and admission (its defaults: what a user runs).
     #[arg(long, default_value = "auto")]
     pub render_scale: String,
-    #[arg(long, default_value = "load")]
-    pub admission: String,
+    #[arg(long, value_enum, default_value = "load")]
+    pub admission: nephele_core::Admission,
     /// Niceness of the attacking process (a child of this one): on a real deployment the
     /// attackers are other machines; 0 lets them compete with the server for this one's CPU.
     #[arg(long, default_value_t = 19)]
@@ -62,6 +62,9 @@ pub struct AbuseArgs {
     /// counts as JSON.
     #[arg(long, hide = true)]
     pub attack_url: Option<String>,
+    /// Print the report as JSON on stdout (the table goes to stderr).
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// What the attacker did.
@@ -130,15 +133,14 @@ pub fn run(args: AbuseArgs) -> Result<()> {
         return Ok(());
     }
     let report = tokio::runtime::Runtime::new()?.block_on(abuse(&args, &std::env::current_exe()?))?;
-    print!("{}", format_report(&args, &report));
-    Ok(())
+    crate::emit(args.json, &format_report(&args, &report), &report)
 }
 
 pub fn format_report(args: &AbuseArgs, r: &AbuseReport) -> String {
     let mut s = String::new();
     s.push_str(&format!(
         "viewer {} at {} fps on {} (server: render scale {}, admission {}); each phase {} s; attacks {:?} from a child process at nice {}\n\n",
-        args.size, args.fps, args.scene, args.render_scale, args.admission, args.seconds, args.attacks, args.attacker_nice
+        args.size, args.fps, args.scene, args.render_scale, format!("{:?}", args.admission).to_lowercase(), args.seconds, args.attacks, args.attacker_nice
     ));
     s.push_str("| phase | viewer fps | server RSS MB |\n|---|---:|---:|\n");
     s.push_str(&format!("| before | {:.1} | {:.0} |\n", r.fps_before, r.rss_before_mb));
@@ -178,10 +180,10 @@ impl Drop for Server {
 }
 
 impl Server {
-    fn start(exe: &std::path::Path, scene: &str, render_scale: &str, admission: &str) -> Result<Self> {
+    fn start(exe: &std::path::Path, scene: &str, render_scale: &str, admission: nephele_core::Admission) -> Result<Self> {
         use std::io::{BufRead, BufReader};
         let mut child = std::process::Command::new(exe)
-            .args(["serve", "--listen", "127.0.0.1:0", "--scene", scene, "--backend", "cpu", "--admission", admission, "--render-scale", render_scale])
+            .args(["serve", "--listen", "127.0.0.1:0", "--scene", scene, "--backend", "cpu", "--admission", if admission == nephele_core::Admission::Load { "load" } else { "open" }, "--render-scale", render_scale])
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -220,7 +222,7 @@ fn opts(url: &str, width: u32, height: u32, fps: u32) -> ClientOptions {
 pub async fn abuse(args: &AbuseArgs, exe: &std::path::Path) -> Result<AbuseReport> {
     let (width, height) = nephele_farm::assets::parse_size(&args.size)?;
     let scene = args.scene.split_once('=').map_or(args.scene.clone(), |(_, a)| format!("trio={a}"));
-    let server = Server::start(exe, &scene, &args.render_scale, &args.admission)?;
+    let server = Server::start(exe, &scene, &args.render_scale, args.admission)?;
     let url = server.url();
 
     // The viewer: a pose every 20 ms, decoded frames timed.

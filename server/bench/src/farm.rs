@@ -46,7 +46,7 @@ pub struct FarmArgs {
     /// Worker kills in the failover run.
     #[arg(long, default_value_t = 3)]
     kills: usize,
-    /// Print the report as JSON.
+    /// Print the report as JSON on stdout (the table goes to stderr).
     #[arg(long)]
     json: bool,
 }
@@ -263,11 +263,7 @@ pub fn run(args: FarmArgs) -> Result<()> {
     let sessions_lost = usize::from(report.frames_decoded == 0);
     let failover_gap_ms = gaps.iter().copied().fold(0.0, f64::max);
     let report = FarmReport { width: size.0, height: size.1, runs, failover_gaps_ms: gaps, failover_gap_ms, frame_gaps_ms: frame_gaps, sessions_lost };
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", format_report(&report));
-    }
+    crate::emit(args.json, &format_report(&report), &report)?;
     Ok(())
 }
 

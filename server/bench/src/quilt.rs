@@ -191,11 +191,7 @@ pub fn run(args: QuiltBenchArgs) -> Result<()> {
     let speedup_vs_ngp = rows.iter().map(|r| r.speedup_vs_ngp).fold(f64::INFINITY, f64::min);
     let speedup_batched = rows.iter().find(|r| r.backend.contains("wgpu")).or(rows.first()).map_or(f64::NAN, |r| r.speedup_batched);
     let report = QuiltReport { asset: args.asset.clone(), quilt: args.quilt.clone(), views: layout.views(), tile_width: tw, tile_height: th, rows, speedup_vs_ngp, speedup_batched, stereo };
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", format_report(&report));
-    }
+    crate::emit(args.json, &format_report(&report), &report)?;
     Ok(())
 }
 

@@ -63,6 +63,60 @@ use nephele_train::{
 
 use crate::plot::{Dot, DotSeries, Labels, Series, line_chart, scatter_chart};
 
+/// The speed/accuracy table (NEPHELE Table 5) and distance sweep (Fig. 14) from a trained
+/// i-NGP checkpoint: trains the i-NOLF variants, scores held-out views, times frames.
+#[derive(clap::Args, Debug, Clone)]
+pub struct TradeoffArgs {
+    dataset: PathBuf,
+    /// The teacher: an i-NGP checkpoint (e.g. DIR.train/ngp.ckpt from `nephele train`).
+    #[arg(long)]
+    teacher: PathBuf,
+    #[arg(long, default_value_t = 2)]
+    downscale: u32,
+    /// Held-out views as in `train --holdout-every` (needed without a test split).
+    #[arg(long)]
+    holdout_every: Option<usize>,
+    /// Appearance steps per student.
+    #[arg(long, default_value_t = 2000)]
+    nolf_steps: u64,
+    /// PSH grid sizes (must include 256).
+    #[arg(long, default_value = "128,256,512", value_delimiter = ',')]
+    psh: Vec<u32>,
+    /// Frame size for the timings.
+    #[arg(long, default_value = "800x800")]
+    size: String,
+    /// Held-out views scored.
+    #[arg(long, default_value_t = 10)]
+    views: usize,
+    /// Camera distances in the sweep.
+    #[arg(long, default_value_t = 7)]
+    distances: usize,
+    /// Where the plot and JSON go.
+    #[arg(long, default_value = "tradeoff")]
+    out: PathBuf,
+    /// Also time i-NGP and the asset on wgpu (one frame each; slow on software Vulkan).
+    #[arg(long)]
+    gpu: bool,
+    /// Multi-hit thresholds τ of the rows of `nephele train`'s settings (1 = one hit).
+    #[arg(long, default_value = "1,0.2,0.1,0.05", value_delimiter = ',')]
+    taus: Vec<f32>,
+    /// Most network queries per ray in those rows.
+    #[arg(long, default_value_t = 3)]
+    max_hits: u32,
+    /// Print the report as JSON on stdout (the table goes to stderr; `OUT/tradeoff.json` is
+    /// written either way).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `nephele bench tradeoff`.
+pub fn run_args(args: TradeoffArgs) -> Result<()> {
+    let TradeoffArgs { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu, taus, max_hits, json } = args;
+    let size = nephele_farm::assets::parse_size(&size)?;
+    let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out, gpu, taus, max_hits })?;
+    crate::emit(json, &format_report(&report), &report)
+}
+
 #[derive(Debug, Clone)]
 pub struct TradeoffOptions {
     pub dataset: PathBuf,

@@ -48,6 +48,9 @@ pub struct UsersArgs {
     /// Times each client replays the orbit (5 s each).
     #[arg(long, default_value_t = 2)]
     loops: usize,
+    /// Poses each client sends (20 ms apart); default: the orbit × `--loops`.
+    #[arg(long)]
+    poses: Option<usize>,
     /// `auto` (dynamic resolution, as served by default) or a fixed scale in 0.05..=1.
     #[arg(long, default_value = "auto")]
     render_scale: String,
@@ -60,7 +63,7 @@ pub struct UsersArgs {
     /// Skip the overload run (admission by load, twice the users the first backend held).
     #[arg(long)]
     no_overload: bool,
-    /// Print the report as JSON.
+    /// Print the report as JSON on stdout (the table goes to stderr).
     #[arg(long)]
     json: bool,
 }
@@ -142,6 +145,10 @@ pub fn run(args: UsersArgs) -> Result<()> {
     for _ in 1..args.loops.max(1) {
         trace.poses.extend_from_slice(&one_turn);
     }
+    if let Some(n) = args.poses {
+        anyhow::ensure!(n > 0, "--poses must be at least 1");
+        trace.poses.truncate(n);
+    }
     let scale = RenderScale::parse(&args.render_scale, args.frame_budget_ms).map_err(anyhow::Error::msg)?;
     let rt = tokio::runtime::Runtime::new()?;
     let mut backends = BTreeMap::new();
@@ -187,11 +194,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
         backends.insert(name, BackendReport { batched, per_user, speedup });
     }
     let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale.clone(), backends, shared_view, overload };
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", format_report(&report));
-    }
+    crate::emit(args.json, &format_report(&report), &report)?;
     let wrong: usize = report.backends.values().flat_map(|b| b.batched.runs.iter().chain(&b.per_user.runs)).map(|r| r.frames_wrong_pose).sum();
     if wrong > 0 {
         bail!("{wrong} frames answered poses their client never sent");
@@ -200,10 +203,16 @@ pub fn run(args: UsersArgs) -> Result<()> {
 }
 
 /// Signaling for `users` benchmark clients, all from this machine's one address: the
-/// per-address burst of new sessions raised to fit them.
-fn hub_for(users: usize) -> nephele_signaling::HubConfig {
+/// per-address limits raised to fit them — a burst of `2·users` new sessions, `users`
+/// sessions joined but not yet connected, and `2·users` open connections (the defaults suit
+/// strangers on the internet, not one machine playing many users).
+pub fn hub_for(users: usize) -> nephele_signaling::HubConfig {
     let mut hub = nephele_signaling::HubConfig::default();
-    hub.limits.join_burst_per_address = hub.limits.join_burst_per_address.max(2 * users as u32);
+    let users_u32 = u32::try_from(users).unwrap_or(u32::MAX);
+    let l = &mut hub.limits;
+    l.join_burst_per_address = l.join_burst_per_address.max(users_u32.saturating_mul(2));
+    l.max_pending_joins_per_address = l.max_pending_joins_per_address.max(users);
+    l.max_connections_per_address = l.max_connections_per_address.max(users.saturating_mul(2));
     hub
 }
 
