@@ -4,7 +4,7 @@
 //! `tests/browser/viewer.mjs`. Missing Chromium, Node or `npm ci` fails loudly: `tests/run`
 //! installs them.
 
-use std::{path::PathBuf, process::Command};
+use std::path::PathBuf;
 
 use nephele_e2e::{Reap, core_config, nephele, repo};
 
@@ -21,8 +21,12 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     let addr = server.addr;
 
     let url = format!("http://{addr}/");
-    let output = tokio::task::spawn_blocking(move || Command::new("node").arg(script).arg(url).env("CHROMIUM", chromium).output())
-        .await
+    let output = tokio::task::spawn_blocking(move || {
+        let mut cmd = nephele_e2e::node(&script);
+        cmd.arg(url).env("CHROMIUM", chromium);
+        nephele_e2e::node_output(cmd)
+    })
+    .await
         .unwrap()
         .expect("running node (install nodejs; tests/run does)");
     let stdout = String::from_utf8_lossy(&output.stdout);
@@ -56,7 +60,9 @@ fn serve(addr: &str) -> Reap {
 /// and returns its exit status and last (JSON) line.
 fn node_around(script: &str, url: &str, meanwhile: impl FnOnce()) -> (bool, serde_json::Value) {
     use std::io::{BufRead, BufReader};
-    let mut node = Command::new("node").arg(repo().join("tests/browser").join(script)).arg(url).stdout(std::process::Stdio::piped()).spawn().expect("running node");
+    let mut node = nephele_e2e::node(&repo().join("tests/browser").join(script)).arg(url).stdout(std::process::Stdio::piped()).spawn().expect("running node");
+    // Node and its Chromium end with this function, even if an assertion fails.
+    let _group = nephele_e2e::NodeGroup(node.id());
     let mut out = BufReader::new(node.stdout.take().unwrap());
     let mut line = String::new();
     out.read_line(&mut line).unwrap();
@@ -127,7 +133,14 @@ async fn the_headset_page_streams_both_eyes_in_webxr() {
     let (server, catalog) = nephele_e2e::start_server(core_config(4)).await;
     let url = format!("http://{}/", server.addr);
     let script = repo().join("tests/browser/xr.mjs");
-    let output = tokio::task::spawn_blocking(move || Command::new("node").arg(script).arg(url).env("CHROMIUM", chromium).output()).await.unwrap().expect("running node");
+    let output = tokio::task::spawn_blocking(move || {
+        let mut cmd = nephele_e2e::node(&script);
+        cmd.arg(url).env("CHROMIUM", chromium);
+        nephele_e2e::node_output(cmd)
+    })
+    .await
+    .unwrap()
+    .expect("running node");
     let stdout = String::from_utf8_lossy(&output.stdout);
     let last = stdout.lines().last().unwrap_or_default();
     let report: serde_json::Value = serde_json::from_str(last).unwrap_or_else(|_| panic!("no JSON report: {stdout} {}", String::from_utf8_lossy(&output.stderr)));
@@ -153,7 +166,8 @@ async fn the_headset_page_streams_both_eyes_in_webxr() {
         let half: Vec<u8> = (r.y..r.y + r.height).flat_map(|y| rgba[(4 * (y * w + r.x)) as usize..(4 * (y * w + r.x + r.width)) as usize].to_vec()).collect();
         let psnr = nephele_renderer::render::psnr_rgb(&half, &direct.rgba);
         println!("eye {i}: viewport {r:?}, PSNR {psnr:.2} dB against a direct render");
-        assert!(psnr >= 30.0, "eye {i}: {psnr:.2} dB < 30");
+        // Measured 43.2 and 44.4 dB (AMD Zen 4); 3 dB below.
+        assert!(psnr >= 40.0, "eye {i}: {psnr:.2} dB < 40");
         // Mean x of the object's pixels in this eye's image.
         let (mut sum, mut n) = (0.0, 0.0);
         for (j, p) in half.chunks_exact(4).enumerate() {

@@ -58,22 +58,37 @@ async fn a_killed_worker_has_its_tasks_re_issued_and_the_stream_carries_on() {
     let mut first = Some(spawn_worker(&nats, "w-first", "light", &scenes));
     let _second = spawn_worker(&nats, "w-second", "light", &scenes);
     let (server, _) = start_nats_master(&scenes, core_config(4), &nats).await;
-    // 6 s of poses; the first worker is killed (SIGKILL) after 2 s.
+    // 6 s of poses; the first worker is killed (SIGKILL) once both workers have rendered
+    // (the master's own count, not a guess of how long that takes).
     let trace = orbit(300);
     let run = tokio::spawn({
         let o = opts(server.signal_url(), "trio", (160, 120), 25);
         async move { replay(&trace, &o, None).await }
     });
-    tokio::time::sleep(Duration::from_secs(2)).await;
-    let killed_at_pose = 100u64;
+    let rendered_by = |worker: &str| -> u64 {
+        let label = nephele_master::metrics::WorkerLabel { worker: worker.into() };
+        server.metrics.tasks_rendered.get_or_create(&label).get()
+    };
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    while rendered_by("w-first") == 0 || rendered_by("w-second") == 0 || server.metrics.frames.get() < 25 {
+        assert!(tokio::time::Instant::now() < deadline, "both workers never rendered: {}", server.metrics.encode());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let frames_at_kill = server.metrics.frames.get();
+    let first_before = rendered_by("w-first");
     first.take(); // kill -9 and reap
     let report = run.await.unwrap().unwrap();
     println!("{report}");
     assert_clean(&report);
-    let after = report.decoded_pose_seqs.iter().filter(|s| **s > killed_at_pose + 25).count();
-    assert!(after >= 20, "only {after} frames after the kill: {report}");
-    // The metrics show both workers were used and one was lost.
-    assert!(report.frames_decoded >= 40);
+    // The stream went on: at least 20 frames after the kill and its re-issues settled.
+    assert!(report.frames_decoded as u64 >= frames_at_kill + 20, "{} frames, {frames_at_kill} before the kill: {report}", report.frames_decoded);
+    // Both workers served, the killed one was lost and served no more, the other carried on.
+    // (A live worker too slow to say `working` in time is also taken out for a while, so
+    // "at least one".)
+    assert!(server.metrics.workers_lost.get() >= 1, "{}", server.metrics.encode());
+    // The killed worker's count stops (a result already on the wire at the kill may land).
+    assert!(rendered_by("w-first") <= first_before + 1, "a dead worker rendered: {}", server.metrics.encode());
+    assert!(rendered_by("w-second") >= 20, "{}", server.metrics.encode());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

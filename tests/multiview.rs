@@ -91,7 +91,8 @@ async fn both_eyes_render_in_one_frame_and_match_direct_renders() {
         let half = crop(&frame.rgba, 2 * eye_w, i as u32 * eye_w, 0, eye_w, eye_h);
         let psnr = psnr_rgb(&half, &direct.rgba);
         println!("eye {i}: PSNR {psnr:.2} dB against a direct render");
-        assert!(psnr >= 30.0, "eye {i}: PSNR {psnr:.2} dB < 30");
+        // Measured 32.5 dB (both eyes, AMD Zen 4); 2 dB below for encoder timing elsewhere.
+        assert!(psnr >= 30.5, "eye {i}: PSNR {psnr:.2} dB < 30.5");
         let _ = eye;
         halves.push(half);
     }
@@ -145,7 +146,8 @@ async fn a_quilt_streams_every_view_in_its_tile() {
     println!("quilt tiles through H.264: mean PSNR {mean:.2} dB, worst {worst:.2} dB against direct renders");
     // Small tiles (96×128) cost H.264 more than one large view: the mean holds 30 dB, the
     // worst tile 28 dB. A tile in the wrong place or with the wrong camera scores < 20 dB.
-    assert!(mean >= 30.0 && worst >= 28.0, "tiles: mean {mean:.2} dB, worst {worst:.2} dB");
+    // Measured mean 32.6, worst 30.8 dB (AMD Zen 4); 2 dB below.
+    assert!(mean >= 30.5 && worst >= 28.8, "tiles: mean {mean:.2} dB, worst {worst:.2} dB");
 }
 
 /// Centre and radius of the fixture scene's bounds (what the master puts the focal plane on).
@@ -204,7 +206,7 @@ fn render_quilt_writes_every_view_in_its_tile_exactly() {
     let fixture = nephele_e2e::fixture_scene();
     let scene = fixture.split_once('=').map_or(fixture.as_str(), |(_, path)| path);
     let status = nephele()
-        .args(["render", scene, "--backend", "cpu", "--quilt", "4x3", "--size", "96x128", "--distance", "3.2", "--azimuth", "30", "--elevation", "15", "--fov", "40"])
+        .args(["render", "--asset", scene, "--backend", "cpu", "--quilt", "4x3", "--size", "96x128", "--distance", "3.2", "--azimuth", "30", "--elevation", "15", "--fov", "40"])
         .arg("--out")
         .arg(&out)
         .status()
@@ -223,13 +225,13 @@ fn render_quilt_writes_every_view_in_its_tile_exactly() {
         let m = view.world_from_camera;
         let rows: Vec<[f64; 4]> = (0..4).map(|r| m.row(r).to_array()).collect();
         std::fs::write(&pose, serde_json::json!({ "transform_matrix": rows, "intrinsics": [k.fx, k.fy, view.intrinsics.cx, k.cy] }).to_string()).unwrap();
-        let status = nephele().args(["render", scene, "--backend", "cpu", "--size", "96x128", "--pose"]).arg(&pose).arg("--out").arg(&single).status().unwrap();
+        let status = nephele().args(["render", "--asset", scene, "--backend", "cpu", "--size", "96x128", "--pose"]).arg(&pose).arg("--out").arg(&single).status().unwrap();
         assert!(status.success());
         let (single, _, _) = read_rgba(&single);
         let (x, y) = layout.tile_origin(i, 96, 128);
         let tile = crop(&quilt, 4 * 96, x, y, 96, 128);
-        let psnr = psnr_rgb(&tile, &single);
-        assert!(psnr >= 40.0, "view {i}: {psnr:.2} dB");
+        // The same camera on the same renderer: the same pixels, to the bit.
+        assert!(tile == single, "view {i}: the tile differs from its single render ({:.2} dB)", psnr_rgb(&tile, &single));
     }
 }
 

@@ -546,7 +546,7 @@ where
 async fn join_and_drop(url: &str) -> Result<(), String> {
     let (ws, _) = tokio_tungstenite::connect_async(url).await.map_err(|e| format!("websocket: {e}"))?;
     let (mut tx, mut rx) = ws.split();
-    let join = ToSignal::Join { scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, token: None, quilt: None };
+    let join = ToSignal::Join { spec: nephele_signaling::protocol::JoinSpec { scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, quilt: None }, token: None };
     tx.send(Message::text(serde_json::to_string(&join).unwrap())).await.map_err(|e| format!("sending join: {e}"))?;
     let reply = tokio::time::timeout(Duration::from_secs(10), async {
         while let Some(m) = rx.next().await {

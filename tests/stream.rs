@@ -61,7 +61,8 @@ async fn replay_frames_answer_sent_poses_and_match_a_direct_render() {
     assert!(report.errors.is_empty(), "{:?}", report.errors);
     assert!(report.quality.len() >= 3, "{} frames compared", report.quality.len());
     let min = report.min_psnr().unwrap();
-    assert!(min >= 30.0, "PSNR {min:.2} dB < 30 dB: {:?}", report.quality);
+    // Measured min 33.5 dB (mean 34.7) on AMD Zen 4 with the fast renderer; 2 dB below.
+    assert!(min >= 31.5, "PSNR {min:.2} dB < 31.5 dB: {:?}", report.quality);
     assert!(report.latency_ms.p50 > 0.0 && report.latency_ms.p50.is_finite());
 }
 
@@ -78,7 +79,8 @@ async fn ar_keyed_alpha_matches_the_renderer_alpha() {
     assert!(report.errors.is_empty(), "{:?}", report.errors);
     assert!(report.quality.len() >= 3, "{} frames compared", report.quality.len());
     let iou = report.min_iou().unwrap();
-    assert!(iou >= 0.95, "keyed mask IoU {iou:.4} < 0.95: {:?}", report.quality);
+    // Measured 0.980 (AMD Zen 4); 0.02 below.
+    assert!(iou >= 0.96, "keyed mask IoU {iou:.4} < 0.96: {:?}", report.quality);
 }
 
 /// Sends poses of a slow orbit every 20 ms until `stop`.
@@ -303,7 +305,7 @@ async fn users_with_different_fps_each_get_their_own_poses() {
     }
     // While they stream, the metrics page lists every user with its target.
     tokio::time::sleep(Duration::from_secs(2)).await;
-    let metrics = http_get(addr, "/metrics").await;
+    let metrics = nephele_e2e::http_get(addr, "/metrics").await;
     for fps in ["8.0", "20.0", "40.0"] {
         assert!(metrics.lines().any(|l| l.starts_with("nephele_user_target_fps{") && l.ends_with(fps)), "no user at {fps} fps in:\n{metrics}");
     }
@@ -317,17 +319,6 @@ async fn users_with_different_fps_each_get_their_own_poses() {
         // Paced at its own rate (never above it; the lower bound is loose, machines vary).
         assert!(report.fps <= 1.1 * f64::from(fps) && report.fps >= 0.4 * f64::from(fps), "{fps} fps target: got {:.1}", report.fps);
     }
-}
-
-/// A plain HTTP/1.1 GET on loopback; returns the body.
-async fn http_get(addr: SocketAddr, path: &str) -> String {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes()).await.unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).await.unwrap();
-    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
-    out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -354,7 +345,36 @@ async fn a_composed_scene_streams_what_a_direct_composed_render_shows() {
     assert_eq!(report.frames_unknown_pose + report.frames_without_pose, 0);
     assert!(report.quality.len() >= 8, "{} frames compared", report.quality.len());
     let min = report.min_psnr().unwrap();
+    // Measured min 37.6 dB (AMD Zen 4); 2.6 below.
     assert!(min >= 35.0, "composed stream vs direct composed render: min PSNR {min:.2} dB: {:?}", report.quality);
+}
+
+/// The GPU path end to end: the composed scene rendered on wgpu (the software adapter here),
+/// its objects composed by depth with the wgpu compositor, encoded and streamed; every
+/// decoded frame checked against a direct composed render of its pose on the same backend.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_composed_scene_streams_on_wgpu_with_its_compositor() {
+    let dir = nephele_e2e::TempDir::new("pair-gpu");
+    let scene = nephele_e2e::pair_scene(&dir.0);
+    let (server, catalog) = nephele_e2e::start_gpu_server(&[scene], core_config(2), 0.5).await;
+    assert!(catalog.backend_name.contains("wgpu"), "{}", catalog.backend_name);
+    let mut trace = Trace::builtin("orbit").unwrap();
+    // Every 10th pose of the whole turn (both depth orders), slowly: lavapipe is slow.
+    trace.poses = trace.poses.iter().step_by(10).copied().collect();
+    trace.period_ms = 150.0;
+    let mut client = client_opts(server.addr, Mode::Viewer, 640, 480);
+    client.scene = "pair".into();
+    client.fps = 8;
+    let opts = ReplayOptions { client, anchor: None, quality_every: 1, save_dir: None, drain: Duration::from_secs(3), start_at: None, stereo_baseline: None };
+    let reference = |view, instance, _bg| catalog.render_scene("pair", view, instance, glam::Vec3::new(0.9, 0.95, 1.0));
+    let report = replay(&trace, &opts, Some(&reference)).await.unwrap();
+    println!("{report}");
+    assert!(report.errors.is_empty(), "{:?}", report.errors);
+    assert_eq!(report.frames_unknown_pose + report.frames_without_pose, 0);
+    assert!(report.quality.len() >= 5, "{} frames compared", report.quality.len());
+    // Measured min 37.4 dB (AMD Zen 4); the CPU path's threshold.
+    let min = report.min_psnr().unwrap();
+    assert!(min >= 35.0, "wgpu composed stream vs direct render: min PSNR {min:.2} dB: {:?}", report.quality);
 }
 
 /// An empty message on the pose channel ends that channel in webrtc-rs. It used to leave a
@@ -394,7 +414,7 @@ async fn an_empty_pose_message_ends_the_session_and_frees_its_slot() {
 
 /// Signaling's `/status` as JSON.
 async fn status(addr: SocketAddr) -> Value {
-    serde_json::from_str(&http_get(addr, "/status").await).unwrap()
+    serde_json::from_str(&nephele_e2e::http_get(addr, "/status").await).unwrap()
 }
 
 /// Open websockets, sessions signaling knows, and sessions its masters report.

@@ -9,7 +9,7 @@
 //     holds a capture permission, so we ask for a camera once and keep the stream.
 //   * fetchScenes(), readPageOptions(), describeError(): small helpers for the pages.
 
-import { clamp } from './camera.js';
+import { checkJoin, fetchLimits } from './join.js';
 import { poseViewCount } from './pose.js';
 import { PresentedLatency } from './presented.js';
 
@@ -67,7 +67,8 @@ export function readPageOptions({ width = 640, height = 480 } = {}) {
     scene: q.get('scene') || null,
     width: m ? even(+m[1]) : width,
     height: m ? even(+m[2]) : height,
-    fps: clamp(parseInt(q.get('fps'), 10) || 50, 1, 120),
+    // Out-of-range rates are refused in words at join (the server's published limits).
+    fps: parseInt(q.get('fps'), 10) || 50,
     token: q.get('token') || undefined,
   };
 }
@@ -233,6 +234,17 @@ export class Connection {
 
     await ensureCapturePermission();
     if (stale()) return;
+
+    // The join checked against the server's published rules, in its words; not sent if it
+    // breaks one. (Without /limits the server's own check still answers.)
+    const join = { scene: this.params.scene, mode: this.mode, width: this.params.width, height: this.params.height, fps: this.params.fps, quilt: this.params.quilt };
+    const limits = await fetchLimits().catch((err) => { console.warn('nephele: no /limits:', err); return null; });
+    if (stale()) return;
+    const broken = limits && checkJoin(join, limits);
+    if (broken) {
+      this.fail('bad_request', broken);
+      return;
+    }
 
     const url = new URL('signal', location.href);
     url.protocol = location.protocol === 'https:' ? 'wss:' : 'ws:';

@@ -87,9 +87,9 @@ fn bench_stream() {
 #[test]
 fn bench_users() {
     let (r, table) = bench(&["users", "--asset", "builtin:trio-small", "--size", "64x48", "--users", "1,2", "--backends", "cpu", "--poses", "50", "--fps", "20"]);
-    numbers(&r, &["backends.cpu.speedup", "backends.cpu.batched.user_frames_per_s", "backends.cpu.per_user.user_frames_per_s"]);
+    numbers(&r, &["backends.cpu.speedup", "backends.cpu.pixel_speedup", "backends.cpu.batched.user_frames_per_s", "backends.cpu.per_user.user_megapixels_per_s"]);
     for mode in ["batched", "per_user"] {
-        assert_eq!(rows(&r, &format!("backends.cpu.{mode}.runs"), &["users", "users_held", "fps_min", "fps_mean", "latency_p50_ms", "latency_p99_ms", "mean_batch_views"]), 2);
+        assert_eq!(rows(&r, &format!("backends.cpu.{mode}.runs"), &["users", "users_held", "fps_min", "fps_mean", "user_megapixels_per_s", "latency_p50_ms", "latency_p99_ms", "mean_batch_views"]), 2);
     }
     let wrong: u64 = ["batched", "per_user"].iter().flat_map(|m| r["backends"]["cpu"][m]["runs"].as_array().unwrap()).map(|run| run["frames_wrong_pose"].as_u64().unwrap()).sum();
     assert_eq!(wrong, 0);

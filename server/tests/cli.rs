@@ -154,6 +154,11 @@ fn bad_input_is_a_clear_error() {
         (vec!["serve", "--pose-latch", "NaN"], "outside 0..=0.5"),
         (vec!["bench", "stream", "--pose-latch=-0.1"], "outside 0..=0.5"),
         (vec!["bench", "encode", "--asset", "none", "--threads", "2,5"], "--threads: 5 encoder threads: OpenH264 takes 1..=4"),
+        // Closed choices name what they accept.
+        (vec!["replay", "--mode", "hologram"], "[possible values: viewer, ar]"),
+        (vec!["bench", "abuse", "--admission", "lottery"], "[possible values: load, open]"),
+        (vec!["bench", "users", "--backends", "tpu"], "[possible values: auto, gpu, cpu, cpu-ref]"),
+        (vec!["serve", "--admission", "lottery"], "[possible values: load, open]"),
     ] {
         let o = nephele(&args);
         assert!(!o.status.success(), "{args:?} should fail");
@@ -200,3 +205,17 @@ fn first_start_without_a_runtime_dir_prints_only_our_words() {
     assert!(!stderr.contains("XDG_RUNTIME_DIR") && !String::from_utf8_lossy(&o.stdout).contains("XDG_RUNTIME_DIR"), "{stderr}");
     let _ = std::fs::remove_file(out);
 }
+
+/// `--asset` names the asset of `render` and `info` as it does every bench's; the old
+/// positional spelling still works, with a deprecation warning naming the new one.
+#[test]
+fn asset_is_a_flag_and_the_old_positional_still_works() {
+    let o = nephele(&["info", "--asset", "builtin:trio-small"]);
+    let (out, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success() && out.contains("name: ") && !err.contains("deprecated"), "{err}");
+    let o = nephele(&["info", "builtin:trio-small"]);
+    let (old, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success() && old == out, "{err}");
+    assert!(err.contains("deprecated") && err.contains("nephele info --asset builtin:trio-small"), "{err}");
+}
+

@@ -148,7 +148,7 @@ fn train_and_eval_reject_bad_input_clearly() {
 
     let o = nephele(&["train", &missing, "--out", &dir.path("out.nolf"), "--preset", "huge"]);
     let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && stderr.contains("unknown preset"), "{stderr}");
+    assert!(!o.status.success() && stderr.contains("'huge'") && stderr.contains("tiny, fast, default, quality"), "the accepted values are named: {stderr}");
 
     // The asset must be a .nolf (unless stopping after the i-NGP stage).
     let o = nephele(&["train", &missing, "--out", &dir.path("asset.txt"), "--preset", "tiny"]);
@@ -233,6 +233,10 @@ fn bench_tradeoff_prints_the_table_and_plots_the_sweep() {
     assert!(cov[2] > cov[0], "{cov:?}");
     assert_eq!(png_size(&dir.0.join("bench/tradeoff_distance.png")), (720, 460));
     assert_eq!(png_size(&dir.0.join("bench/tradeoff_psnr_ms.png")), (720, 460));
+    for svg in ["bench/tradeoff_distance.svg", "bench/tradeoff_psnr_ms.svg"] {
+        let text = std::fs::read_to_string(dir.0.join(svg)).unwrap_or_else(|e| panic!("{svg}: {e}"));
+        assert!(text.starts_with("<svg") && text.contains("i-NOLF"), "{svg}");
+    }
 
     // `bench quilt` with the same teacher, at a 2×2 quilt of tiny tiles on both backends,
     // and the stereo stream: every figure finite, the table on stderr.

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::protocol::{ErrorCode, Mode, QuiltSpec, ToClient, ToMaster, ToPeer, ToSignal};
+use crate::protocol::{ErrorCode, JoinSpec, ToClient, ToMaster, ToPeer, ToSignal};
 
 /// Identifies one websocket connection; chosen by the IO edge.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -462,31 +462,8 @@ impl Hub {
         match (peer, msg) {
             (
                 Peer::Fresh | Peer::Client { .. },
-                ToSignal::Join {
-                    scene,
-                    mode,
-                    width,
-                    height,
-                    fps,
-                    token,
-                    quilt,
-                },
-            ) => self.join(
-                conn,
-                JoinRequest {
-                    scene,
-                    mode,
-                    width,
-                    height,
-                    fps,
-                    quilt: match mode {
-                        Mode::Quilt => Some(quilt.unwrap_or_default()),
-                        _ => quilt,
-                    },
-                },
-                token.as_deref(),
-                now,
-            ),
+                ToSignal::Join { spec, token },
+            ) => self.join(conn, spec, token.as_deref(), now),
             (
                 Peer::Fresh,
                 ToSignal::Register {
@@ -586,7 +563,7 @@ impl Hub {
         }
     }
 
-    fn join(&mut self, conn: ConnId, req: JoinRequest, token: Option<&str>, now: Instant) -> Res {
+    fn join(&mut self, conn: ConnId, req: JoinSpec, token: Option<&str>, now: Instant) -> Res {
         Self::check_token(self.cfg.token.as_deref(), token)?;
         if let Some(Peer::Client {
             session: Some(session),
@@ -596,7 +573,8 @@ impl Hub {
                 "already in session {session}; send `leave` first"
             )));
         }
-        req.validate()?;
+        req.check().map_err(|e| SignalError::BadRequest(e.to_string()))?;
+        let req = req.with_defaults();
         if let Some(address) = self.addresses.get(&conn) {
             let limit = self.cfg.limits.max_pending_joins_per_address;
             let pending = self.sessions.values().filter(|s| !s.connected && self.addresses.get(&s.client) == Some(address)).count();
@@ -635,14 +613,6 @@ impl Hub {
                 session: Some(session.clone()),
             },
         );
-        let JoinRequest {
-            scene,
-            mode,
-            width,
-            height,
-            fps,
-            quilt,
-        } = req;
         Ok(vec![
             Outgoing::client(
                 conn,
@@ -653,15 +623,7 @@ impl Hub {
             ),
             Outgoing::master(
                 master_conn,
-                ToMaster::Join {
-                    session,
-                    scene,
-                    mode,
-                    width,
-                    height,
-                    fps,
-                    quilt,
-                },
+                ToMaster::Join { session, spec: req },
             ),
         ])
     }
@@ -839,36 +801,6 @@ impl Hub {
             ));
         }
         out
-    }
-}
-
-struct JoinRequest {
-    scene: String,
-    mode: Mode,
-    width: u32,
-    height: u32,
-    fps: u32,
-    quilt: Option<QuiltSpec>,
-}
-
-impl JoinRequest {
-    fn validate(&self) -> Result<(), SignalError> {
-        validate_name("scene", &self.scene)?;
-        if self.quilt.is_some() && self.mode != Mode::Quilt {
-            return Err(SignalError::BadRequest("a quilt layout is only for mode \"quilt\"".into()));
-        }
-        nephele_limits::check_stream_size(self.width, self.height)
-            .and_then(|()| nephele_limits::check_fps(self.fps))
-            .and_then(|()| match self.quilt {
-                Some(q) => nephele_limits::check_quilt(q.cols, q.rows, q.cone_deg, self.width, self.height),
-                None => Ok(()),
-            })
-            .map_err(|e| SignalError::BadRequest(e.to_string()))
-    }
-
-    /// Rays per second this session asks for at full resolution.
-    fn pixel_rate(&self) -> f64 {
-        f64::from(self.width) * f64::from(self.height) * f64::from(self.fps)
     }
 }
 

@@ -182,13 +182,21 @@ impl SignalState {
     }
 }
 
-/// The signaling routes (`GET /signal`, `GET /status`) with state applied, ready to
-/// `merge` into a bigger app. The tick task is separate: see [`SignalState::spawn_tick_task`].
+/// The signaling routes (`GET /signal`, `GET /status`, `GET /limits`) with state applied,
+/// ready to `merge` into a bigger app. The tick task is separate: see
+/// [`SignalState::spawn_tick_task`].
 pub fn app(state: SignalState) -> Router {
     Router::new()
         .route("/signal", get(upgrade))
         .route("/status", get(status))
+        .route("/limits", get(limits))
         .with_state(state)
+}
+
+/// `GET /limits`: the rules a join must keep ([`crate::protocol::JoinLimits`]), which the
+/// pages check a join against before sending it. Public: they are no secret.
+async fn limits() -> axum::Json<crate::protocol::JoinLimits> {
+    axum::Json(crate::protocol::JoinLimits::current())
 }
 
 /// Serve signaling alone on `listener` (with its tick task) until the server fails.

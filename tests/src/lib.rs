@@ -17,7 +17,7 @@ use nephele_master::{
     web::{self, LocalServer},
 };
 use nephele_rtc::RtcConfig;
-use nephele_renderer::{CpuBackend, RenderSettings};
+use nephele_renderer::{Backend, FastCpuBackend, RenderSettings, gpu::GpuBackend};
 
 /// The repository root.
 pub fn repo() -> PathBuf {
@@ -54,6 +54,34 @@ impl Drop for Reap {
     }
 }
 
+/// `node SCRIPT ARGS…` in a process group of its own, so that [`NodeGroup`] can end the
+/// browser it starts along with it.
+pub fn node(script: &std::path::Path) -> Command {
+    use std::os::unix::process::CommandExt;
+    let mut cmd = Command::new("node");
+    cmd.arg(script).process_group(0);
+    cmd
+}
+
+/// Ends a `node` process group (node and the Chromium it launched) when dropped, whether the
+/// test passed, failed or panicked: no browser is left running.
+pub struct NodeGroup(pub u32);
+
+impl Drop for NodeGroup {
+    fn drop(&mut self) {
+        // `kill -KILL -PGID`: the whole group; an error only means it is gone already.
+        let _ = Command::new("kill").args(["-KILL", "--", &format!("-{}", self.0)]).stderr(std::process::Stdio::null()).status();
+    }
+}
+
+/// Runs `cmd` (from [`node`]) to the end and returns its output; its process group is ended
+/// on the way out in any case.
+pub fn node_output(mut cmd: Command) -> std::io::Result<std::process::Output> {
+    let child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn()?;
+    let _group = NodeGroup(child.id());
+    child.wait_with_output()
+}
+
 /// A core configuration for tests: exact render scale, `capacity` sessions, admission open
 /// (tests run side by side on two cores, so the farm they measure is slower than it is
 /// alone; admission by load has its own tests on simulated time).
@@ -61,7 +89,8 @@ pub fn core_config(capacity: u32) -> CoreConfig {
     CoreConfig { capacity, render_scale: RenderScale::Fixed(1.0), admission: Admission::Open, ..Default::default() }
 }
 
-/// Signaling + a master (CPU backend, the fixture scene) + pages, in this process.
+/// Signaling + a master (the fast CPU renderer `serve` uses by default, the fixture scene) +
+/// pages, in this process.
 pub async fn start_server(core: CoreConfig) -> (LocalServer, Arc<Catalog>) {
     start_server_with(&[fixture_scene()], core).await
 }
@@ -73,18 +102,32 @@ pub async fn start_server_with(scenes: &[String], core: CoreConfig) -> (LocalSer
 
 /// [`start_server_with`] at `bits_per_pixel` of video.
 pub async fn start_server_full(scenes: &[String], core: CoreConfig, bits_per_pixel: f64) -> (LocalServer, Arc<Catalog>) {
-    start_master(scenes, core, bits_per_pixel, None).await
+    start_master(scenes, core, bits_per_pixel, None, &FastCpuBackend, ComposeChoice::Cpu).await
+}
+
+/// [`start_server_with`] rendering on wgpu (the software adapter here) and composing
+/// multi-object frames with the wgpu compositor: the path a GPU server takes.
+pub async fn start_gpu_server(scenes: &[String], core: CoreConfig, bits_per_pixel: f64) -> (LocalServer, Arc<Catalog>) {
+    let gpu = GpuBackend::new().expect("a wgpu adapter (tests/run installs lavapipe)");
+    start_master(scenes, core, bits_per_pixel, None, &gpu, ComposeChoice::Gpu).await
 }
 
 /// A master rendering on the NATS farm at `nats` (with its token), in this process.
 pub async fn start_nats_master(scenes: &[String], core: CoreConfig, nats: &NatsServer) -> (LocalServer, Arc<Catalog>) {
     let settings = NatsSettings { url: nats.url.clone(), auth: NatsAuth { token: Some(nats.token.clone()), ..Default::default() } };
-    start_master(scenes, core, DEFAULT_BITS_PER_PIXEL, Some(settings)).await
+    start_master(scenes, core, DEFAULT_BITS_PER_PIXEL, Some(settings), &FastCpuBackend, ComposeChoice::Cpu).await
 }
 
-async fn start_master(scenes: &[String], core: CoreConfig, bits_per_pixel: f64, nats: Option<NatsSettings>) -> (LocalServer, Arc<Catalog>) {
-    let catalog = Arc::new(Catalog::load(scenes, &CpuBackend, RenderSettings::default()).expect("the scenes load"));
-    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1, compose: ComposeChoice::Cpu, bits_per_pixel, nats };
+async fn start_master(
+    scenes: &[String],
+    core: CoreConfig,
+    bits_per_pixel: f64,
+    nats: Option<NatsSettings>,
+    backend: &dyn Backend,
+    compose: ComposeChoice,
+) -> (LocalServer, Arc<Catalog>) {
+    let catalog = Arc::new(Catalog::load(scenes, backend, RenderSettings::default()).expect("the scenes load"));
+    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1, compose, bits_per_pixel, nats };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("a loopback port");
     (web::spawn_local(listener, Arc::clone(&catalog), cfg).await.expect("the server starts"), catalog)
 }
@@ -261,4 +304,15 @@ pub fn spawn_fixture_master(addr: &str) -> Reap {
             .spawn()
             .unwrap(),
     )
+}
+
+/// A plain HTTP/1.1 GET on loopback; returns the body.
+pub async fn http_get(addr: std::net::SocketAddr, path: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes()).await.unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).await.unwrap();
+    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
+    out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default()
 }

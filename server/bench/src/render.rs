@@ -22,7 +22,7 @@ pub struct RenderArgs {
     #[arg(long, default_value = "256x256,800x800,1920x1080")]
     sizes: String,
     /// Backends to compare side by side.
-    #[arg(long, value_delimiter = ',', default_value = "gpu,cpu")]
+    #[arg(long, value_delimiter = ',', default_value = "cpu,gpu")]
     backends: Vec<BackendChoice>,
     #[arg(long, default_value_t = 3)]
     runs: usize,

@@ -13,7 +13,7 @@ use nephele_client::{
 };
 use nephele_core::{CoreConfig, scheduler::RenderScale};
 use nephele_farm::{
-    assets::{BackendChoice, make_backend, parse_size},
+    assets::{BackendChoice, DEFAULT_ASSET, make_backend, parse_size},
     catalog::Catalog,
 };
 use nephele_master::{MasterConfig, web};
@@ -24,7 +24,7 @@ use serde::Serialize;
 /// Per-stage and end-to-end streaming latency through an in-process server.
 #[derive(clap::Args, Debug, Clone)]
 pub struct StreamArgs {
-    #[arg(long, default_value = "builtin:trio-small")]
+    #[arg(long, default_value = DEFAULT_ASSET)]
     asset: String,
     #[arg(long, default_value = "640x480,1280x720")]
     sizes: String,

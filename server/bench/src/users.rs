@@ -76,6 +76,10 @@ pub struct UsersRun {
     pub users: usize,
     pub users_held: usize,
     pub user_frames_per_s: f64,
+    /// Rendered megapixels per second over all users: each user's frames/s × its frame's
+    /// pixels × its mean render scale² (a farm that holds every user's frame rate shows
+    /// what it can do more of in the resolution it keeps).
+    pub user_megapixels_per_s: f64,
     pub fps_min: f64,
     pub fps_mean: f64,
     pub latency_p50_ms: f64,
@@ -96,6 +100,7 @@ pub struct ModeSummary {
     pub users: usize,
     pub users_held: usize,
     pub user_frames_per_s: f64,
+    pub user_megapixels_per_s: f64,
     pub runs: Vec<UsersRun>,
 }
 
@@ -105,6 +110,9 @@ pub struct BackendReport {
     pub per_user: ModeSummary,
     /// batched ÷ per_user user-frames per second at the largest user count.
     pub speedup: f64,
+    /// batched ÷ per_user rendered megapixels per second there (with `--render-scale auto`
+    /// both may hold every frame rate; batching then shows in the resolution kept).
+    pub pixel_speedup: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -170,7 +178,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
                 runs.push(summarise(&name, mode, args.fps, &reports));
             }
             let last = runs.last().context("no user counts given")?.clone();
-            modes.push(ModeSummary { users: last.users, users_held: last.users_held, user_frames_per_s: last.user_frames_per_s, runs });
+            modes.push(ModeSummary { users: last.users, users_held: last.users_held, user_frames_per_s: last.user_frames_per_s, user_megapixels_per_s: last.user_megapixels_per_s, runs });
         }
         if !args.no_shared && shared_view.is_none() {
             eprintln!("{name} batched: 2 users sharing one view ...");
@@ -191,7 +199,8 @@ pub fn run(args: UsersArgs) -> Result<()> {
         let per_user = modes.pop().expect("two modes");
         let batched = modes.pop().expect("two modes");
         let speedup = batched.user_frames_per_s / per_user.user_frames_per_s.max(1e-9);
-        backends.insert(name, BackendReport { batched, per_user, speedup });
+        let pixel_speedup = batched.user_megapixels_per_s / per_user.user_megapixels_per_s.max(1e-9);
+        backends.insert(name, BackendReport { batched, per_user, speedup, pixel_speedup });
     }
     let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale.clone(), backends, shared_view, overload };
     crate::emit(args.json, &format_report(&report), &report)?;
@@ -310,6 +319,7 @@ fn summarise(backend: &str, mode: &str, fps: u32, reports: &[ReplayReport]) -> U
         users: reports.len(),
         users_held: fps_each.iter().filter(|f| **f >= HELD_SHARE * f64::from(fps)).count(),
         user_frames_per_s: fps_each.iter().sum(),
+        user_megapixels_per_s: reports.iter().map(|r| r.fps * f64::from(r.width) * f64::from(r.height) * r.mean_render_scale.powi(2) / 1e6).sum(),
         fps_min: fps_each.iter().copied().fold(f64::INFINITY, f64::min),
         fps_mean: fps_each.iter().sum::<f64>() / n,
         latency_p50_ms: reports.iter().map(|r| r.latency_ms.p50).sum::<f64>() / n,
@@ -336,13 +346,13 @@ pub fn format_report(r: &UsersReport) -> String {
         r.render_scale,
         100.0 * HELD_SHARE
     );
-    let _ = writeln!(out, "| backend | mode | users | held | user-frames/s | fps min / mean | p50 / p99 ms | render ms per user-frame | views per task | render scale | max gap ms |");
-    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(out, "| backend | mode | users | held | user-frames/s | rendered Mpx/s | fps min / mean | p50 / p99 ms | render ms per user-frame | views per task | render scale | max gap ms |");
+    let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let row = |out: &mut String, u: &UsersRun| {
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} | {:.1} | {:.1} / {:.1} | {:.0} / {:.0} | {:.1} | {:.2} | {:.2} | {:.0} |",
-            u.backend, u.mode, u.users, u.users_held, u.user_frames_per_s, u.fps_min, u.fps_mean, u.latency_p50_ms, u.latency_p99_ms, u.render_ms_per_user_frame, u.mean_batch_views, u.mean_render_scale, u.max_frame_gap_ms
+            "| {} | {} | {} | {} | {:.1} | {:.2} | {:.1} / {:.1} | {:.0} / {:.0} | {:.1} | {:.2} | {:.2} | {:.0} |",
+            u.backend, u.mode, u.users, u.users_held, u.user_frames_per_s, u.user_megapixels_per_s, u.fps_min, u.fps_mean, u.latency_p50_ms, u.latency_p99_ms, u.render_ms_per_user_frame, u.mean_batch_views, u.mean_render_scale, u.max_frame_gap_ms
         );
     };
     for b in r.backends.values() {
@@ -354,8 +364,8 @@ pub fn format_report(r: &UsersReport) -> String {
     for (name, b) in &r.backends {
         let _ = writeln!(
             out,
-            "{name}: batching raises user-frames/s {:.2}x at {} users ({:.1} vs {:.1})",
-            b.speedup, b.batched.users, b.batched.user_frames_per_s, b.per_user.user_frames_per_s
+            "{name}: batching raises user-frames/s {:.2}x at {} users ({:.1} vs {:.1}) and rendered pixels/s {:.2}x ({:.2} vs {:.2} Mpx/s)",
+            b.speedup, b.batched.users, b.batched.user_frames_per_s, b.per_user.user_frames_per_s, b.pixel_speedup, b.batched.user_megapixels_per_s, b.per_user.user_megapixels_per_s
         );
     }
     if let Some(o) = &r.overload {

@@ -17,7 +17,7 @@ use std::{
 use anyhow::{Context, Result, anyhow, bail};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use nephele_protocol::{Mode, ToClient, ToSignal};
+use nephele_protocol::{JoinSpec, Mode, ToClient, ToSignal};
 use openh264::{decoder::Decoder, formats::YUVSource};
 use tokio::sync::mpsc;
 use tokio_tungstenite::tungstenite::Message;
@@ -139,15 +139,8 @@ impl StreamClient {
         }
         .with_context(|| format!("connecting to {}", opts.signal_url))?;
         let (mut ws_tx, mut ws_rx) = ws.split();
-        let join = ToSignal::Join {
-            scene: opts.scene.clone(),
-            mode: opts.mode,
-            width: opts.width,
-            height: opts.height,
-            fps: opts.fps,
-            token: opts.token.clone(),
-            quilt: opts.quilt,
-        };
+        let spec = JoinSpec { scene: opts.scene.clone(), mode: opts.mode, width: opts.width, height: opts.height, fps: opts.fps, quilt: opts.quilt };
+        let join = ToSignal::Join { spec, token: opts.token.clone() };
         ws_tx.send(Message::text(serde_json::to_string(&join)?)).await?;
         match next_signal(&mut ws_rx).await? {
             ToClient::Joined { .. } => {}

@@ -24,8 +24,12 @@ pub enum CoreEvent {
     TaskFormed { views: usize, users: usize },
     /// A render task was dropped because every user of it left.
     TaskCancelled,
-    /// A render task came back after `render_ms` on its worker.
-    TaskRendered { render_ms: f64 },
+    /// A render task came back after `render_ms` from `worker`, rendered (`ok`) or not.
+    TaskRendered { render_ms: f64, worker: String, ok: bool },
+    /// A render worker joined the farm (`workers` are up now).
+    WorkerUp { worker: String, workers: usize },
+    /// A render worker left or was lost (`workers` are up now).
+    WorkerLost { worker: String, workers: usize },
     /// A frame was served from the history table (or a user's own last frame).
     HistoryHit,
     /// A frame failed to render or encode.

@@ -35,7 +35,7 @@ use std::{
 
 use glam::Vec3;
 use nephele_renderer::{Frame, Instance};
-use nephele_protocol::Mode;
+use nephele_protocol::{JoinSpec, Mode};
 
 use self::{
     estimate::{Proxy, classify, estimate},
@@ -143,13 +143,8 @@ impl Default for CoreConfig {
 #[derive(Debug, Clone, PartialEq)]
 pub struct JoinRequest {
     pub session: String,
-    pub scene: String,
-    pub mode: Mode,
-    pub width: u32,
-    pub height: u32,
-    pub fps: u32,
-    /// Mode `quilt`: the layout (the defaults when the client gave none).
-    pub quilt: Option<nephele_protocol::QuiltSpec>,
+    /// What the client asked for, as signaling checked it (mode `quilt` with its layout).
+    pub spec: JoinSpec,
 }
 
 /// Everything that can happen to a master.
@@ -276,7 +271,7 @@ struct User {
 impl User {
 
     fn pixels(&self) -> f64 {
-        f64::from(self.req.width) * f64::from(self.req.height)
+        f64::from(self.req.spec.width) * f64::from(self.req.spec.height)
     }
 }
 
@@ -377,7 +372,8 @@ impl MasterCore {
         self.now = self.now.max(now);
         let now = self.now;
         match input {
-            Input::Join(req) => self.join(req, now),
+            // Mode `quilt` without a layout gets the default one, as signaling gives it.
+            Input::Join(req) => self.join(JoinRequest { spec: req.spec.with_defaults(), ..req }, now),
             Input::Leave { session } => self.drop_user(&session, "the client left", false),
             Input::PeerConnected { session } => {
                 if let Some(u) = self.users.get_mut(&session) {
@@ -416,6 +412,9 @@ impl MasterCore {
                 let mut ema = Ema::new(0.2);
                 ema.observe(rays_per_s);
                 let assets = assets.map(|a| a.into_iter().collect());
+                if !self.workers.contains_key(&worker) {
+                    self.events.push(CoreEvent::WorkerUp { worker: worker.0.clone(), workers: self.workers.len() + 1 });
+                }
                 let w = self.workers.entry(worker).or_insert(Worker { rays_per_s: ema, slots: slots.max(1), in_flight: 0, farm, assets: None });
                 w.slots = slots.max(1);
                 w.farm = farm;
@@ -492,12 +491,12 @@ impl MasterCore {
                     RenderScale::Auto { min, .. } => self.initial_scale(&req, min),
                 };
                 let user = User {
-                    background: match req.mode {
+                    background: match req.spec.mode {
                         Mode::Ar => background_of(Mode::Ar),
-                        _ => self.scenes.get(&req.scene).map_or(background_of(req.mode), |s| s.background),
+                        _ => self.scenes.get(&req.spec.scene).map_or(background_of(req.spec.mode), |s| s.background),
                     },
-                    session: Session::with_epoch(req.width, req.height, req.fps, refine, Some(self.epoch)).with_layout(self.layout(&req)).with_pose_latch(self.cfg.pose_latch),
-                    clock: UserClock::new(req.fps, now),
+                    session: Session::with_epoch(req.spec.width, req.spec.height, req.spec.fps, refine, Some(self.epoch)).with_layout(self.layout(&req)).with_pose_latch(self.cfg.pose_latch),
+                    clock: UserClock::new(req.spec.fps, now),
                     joined_at: now,
                     connected: false,
                     loaded_tasks: 0,
@@ -507,8 +506,8 @@ impl MasterCore {
                     starved: false,
                     req: req.clone(),
                 };
-                self.events.push(CoreEvent::UserAdmitted { session: req.session.clone(), target_fps: f64::from(req.fps), scale });
-                tracing::info!(session = %req.session, scene = %req.scene, mode = ?req.mode, width = req.width, height = req.height, fps = req.fps, "session admitted");
+                self.events.push(CoreEvent::UserAdmitted { session: req.session.clone(), target_fps: f64::from(req.spec.fps), scale });
+                tracing::info!(session = %req.session, scene = %req.spec.scene, mode = ?req.spec.mode, width = req.spec.width, height = req.spec.height, fps = req.spec.fps, "session admitted");
                 self.users.insert(req.session.clone(), user);
                 self.events.push(CoreEvent::Users { count: self.users.len() });
                 self.outputs.push_back(Output::Accept(req));
@@ -519,8 +518,8 @@ impl MasterCore {
     /// How a session's frame is made of views: a quilt's are the master's to derive (focal
     /// plane through the scene's centre), the others come with each pose.
     fn layout(&self, req: &JoinRequest) -> FrameLayout {
-        let (width, height) = (req.width, req.height);
-        match (req.quilt, self.scenes.get(&req.scene)) {
+        let (width, height) = (req.spec.width, req.spec.height);
+        match (req.spec.quilt, self.scenes.get(&req.spec.scene)) {
             (Some(q), Some(scene)) => FrameLayout::Quilt {
                 width,
                 height,
@@ -537,18 +536,10 @@ impl MasterCore {
         if self.users.contains_key(&req.session) {
             return Err(("duplicate", format!("session {} is already here", req.session)));
         }
-        if req.quilt.is_some() != (req.mode == Mode::Quilt) {
-            return Err(("mode", "a quilt layout goes with mode quilt, and only with it".into()));
-        }
-        nephele_limits::check_stream_size(req.width, req.height)
-            .and_then(|()| nephele_limits::check_fps(req.fps))
-            .and_then(|()| match req.quilt {
-                Some(q) => nephele_limits::check_quilt(q.cols, q.rows, q.cone_deg, req.width, req.height),
-                None => Ok(()),
-            })
-            .map_err(|e| ("limits", e.to_string()))?;
-        if !self.scenes.contains_key(&req.scene) {
-            return Err(("scene", format!("unknown scene {:?}; this master has: {}", req.scene, self.scene_names().join(", "))));
+        // The same rules and words as signaling's (a master may sit behind another one).
+        req.spec.check().map_err(|e| ("limits", e.to_string()))?;
+        if !self.scenes.contains_key(&req.spec.scene) {
+            return Err(("scene", format!("unknown scene {:?}; this master has: {}", req.spec.scene, self.scene_names().join(", "))));
         }
         if self.users.len() as u32 >= self.cfg.capacity {
             return Err(("capacity", format!("this master serves at most {} sessions at once and all are taken", self.cfg.capacity)));
@@ -565,7 +556,7 @@ impl MasterCore {
                     starving.len(),
                     self.users.len(),
                     worst.clock.achieved_fps(),
-                    worst.req.fps
+                    worst.req.spec.fps
                 ),
             ));
         }
@@ -574,7 +565,7 @@ impl MasterCore {
         if rays > 0.0 && !self.users.is_empty() {
             let floor = self.cfg.render_scale.floor();
             let admitted: Vec<Demand> = self.users.values().map(|u| self.demand(u, now, true)).collect();
-            let newcomer = Demand { pixels: f64::from(req.width) * f64::from(req.height), fps: f64::from(req.fps), fixed_scale: self.fixed_scale(), active: true };
+            let newcomer = Demand { pixels: f64::from(req.spec.width) * f64::from(req.spec.height), fps: f64::from(req.spec.fps), fixed_scale: self.fixed_scale(), active: true };
             let (ok, need, free) = fits(&admitted, &newcomer, floor, rays);
             if !ok {
                 return Err((
@@ -600,7 +591,7 @@ impl MasterCore {
     /// What `u` asks of the farm; `admission`: count every user as moving.
     fn demand(&self, u: &User, now: Instant, admission: bool) -> Demand {
         let active = admission || u.session.moved_at().is_some_and(|t| now.saturating_duration_since(t) <= ACTIVE_WINDOW);
-        Demand { pixels: u.pixels(), fps: f64::from(u.req.fps), fixed_scale: self.fixed_scale(), active }
+        Demand { pixels: u.pixels(), fps: f64::from(u.req.spec.fps), fixed_scale: self.fixed_scale(), active }
     }
 
     /// Starved beyond the grace: waiting for a frame, and late against its target time by
@@ -615,7 +606,7 @@ impl MasterCore {
         let rays = self.farm_rays_per_s();
         let others = self.users.values().map(|u| u.scale).fold(0.5f32.max(min), f32::min);
         match self.cfg.render_scale {
-            RenderScale::Auto { budget_ms, .. } if rays > 0.0 => latency_scale(f64::from(req.width) * f64::from(req.height), rays, budget_ms, min).min(others),
+            RenderScale::Auto { budget_ms, .. } if rays > 0.0 => latency_scale(f64::from(req.spec.width) * f64::from(req.spec.height), rays, budget_ms, min).min(others),
             _ => others,
         }
     }
@@ -624,17 +615,17 @@ impl MasterCore {
 
     fn hello(&mut self, session: &str) {
         let Some(u) = self.users.get(session) else { return };
-        let Some(scene) = self.scenes.get(&u.req.scene) else { return };
+        let Some(scene) = self.scenes.get(&u.req.spec.scene) else { return };
         let msg = ToViewer::Session {
             scene: scene.name.clone(),
-            mode: u.req.mode,
+            mode: u.req.spec.mode,
             center: scene.center.to_array(),
             radius: scene.radius,
             up: [0.0, 0.0, 1.0],
-            width: u.req.width,
-            height: u.req.height,
-            fps: u.req.fps,
-            quilt: u.req.quilt.map(|q| QuiltInfo { cols: q.cols, rows: q.rows, cone_deg: q.cone_deg, tile_width: u.req.width / q.cols, tile_height: u.req.height / q.rows }),
+            width: u.req.spec.width,
+            height: u.req.spec.height,
+            fps: u.req.spec.fps,
+            quilt: u.req.spec.quilt.map(|q| QuiltInfo { cols: q.cols, rows: q.rows, cone_deg: q.cone_deg, tile_width: u.req.spec.width / q.cols, tile_height: u.req.spec.height / q.rows }),
         };
         self.tell(session, msg);
     }
@@ -842,7 +833,7 @@ impl MasterCore {
                     loaded_tasks: u.loaded_tasks,
                     target_time: u.clock.target_time(),
                     rays: (u.pixels() * f64::from(scale * scale)).ceil() as u64,
-                    fps: u.req.fps,
+                    fps: u.req.spec.fps,
                 }
             })
             .collect();
@@ -857,7 +848,7 @@ impl MasterCore {
         let mut groups: BTreeMap<String, Vec<(TaskView, RequestKey)>> = BTreeMap::new();
         for c in &candidates[..n] {
             let u = self.users.get_mut(&c.session).expect("a candidate");
-            let Some(scene) = self.scenes.get(&u.req.scene).cloned() else { continue };
+            let Some(scene) = self.scenes.get(&u.req.spec.scene).cloned() else { continue };
             let Some(job) = u.session.poll_frame(now, u.scale) else { continue };
             u.clock.waiting_since = None;
             // Several objects render over black (premultiplied) and are composed later.
@@ -994,8 +985,8 @@ impl MasterCore {
             idr,
             views,
             compose_over: composed.then_some(u.background),
-            width: u.req.width,
-            height: u.req.height,
+            width: u.req.spec.width,
+            height: u.req.spec.height,
             started_at,
         }));
     }
@@ -1013,7 +1004,8 @@ impl MasterCore {
                 w.rays_per_s.observe(task.rays as f64 / (result.render_ms / 1e3));
             }
         }
-        self.events.push(CoreEvent::TaskRendered { render_ms: result.render_ms });
+        let worker = result.rendered_by.clone().unwrap_or_else(|| task.worker.0.clone());
+        self.events.push(CoreEvent::TaskRendered { render_ms: result.render_ms, worker, ok: result.frames.is_ok() });
         let n_views = task.views.len();
         let frames = match result.frames {
             Ok(f) if f.len() == n_views => Ok(f),
@@ -1086,6 +1078,7 @@ impl MasterCore {
         if self.workers.remove(worker).is_none() {
             return;
         }
+        self.events.push(CoreEvent::WorkerLost { worker: worker.0.clone(), workers: self.workers.len() });
         if tasks_lost {
             let lost: Vec<TaskId> = self.in_flight.iter().filter(|(_, t)| &t.worker == worker).map(|(id, _)| *id).collect();
             for id in lost {

@@ -112,12 +112,15 @@ pub struct TaskResult {
     pub transfer_ms: f64,
     /// Bytes of the result that crossed the network (0 in process).
     pub bytes: u64,
+    /// The worker that rendered it, when the farm knows better than the core which one did
+    /// (a light farm's queue group picks its own); `None`: the worker it was handed to.
+    pub rendered_by: Option<String>,
 }
 
 impl TaskResult {
     /// A result rendered in this process.
     pub fn local(id: TaskId, frames: Result<Vec<Arc<Frame>>, String>, render_ms: f64) -> Self {
-        Self { id, frames, render_ms, transfer_ms: 0.0, bytes: 0 }
+        Self { id, frames, render_ms, transfer_ms: 0.0, bytes: 0, rendered_by: None }
     }
 
     /// A task that did not render, and why.

@@ -218,7 +218,7 @@ fn translate(
                 tracing::info!(%master, "registered with signaling");
                 Some(Input::SignalingUp)
             }
-            ToMaster::Join { session, scene, mode, width, height, fps, quilt } => Some(Input::Join(JoinRequest { session, scene, mode, width, height, fps, quilt })),
+            ToMaster::Join { session, spec } => Some(Input::Join(JoinRequest { session, spec })),
             ToMaster::Offer { session, sdp } => {
                 command(sessions, &session, PeerCommand::Offer(sdp));
                 None
@@ -308,12 +308,12 @@ fn execute(
             let edge = SessionEdge {
                 commands: tx,
                 encoder: None,
-                encoder_config: EncoderConfig::with_bits_per_pixel(req.width, req.height, req.fps, bits_per_pixel),
+                encoder_config: EncoderConfig::with_bits_per_pixel(req.spec.width, req.spec.height, req.spec.fps, bits_per_pixel),
                 encoder_made: false,
                 waiting: Default::default(),
                 started: Instant::now(),
                 last_sent: None,
-                fps: req.fps,
+                fps: req.spec.fps,
             };
             sessions.insert(req.session.clone(), edge);
             tokio::spawn(peer_task(req.session, Arc::clone(api), rx, events.clone(), to_signal.clone()));

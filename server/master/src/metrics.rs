@@ -24,6 +24,11 @@ pub struct SessionLabel {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct WorkerLabel {
+    pub worker: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct ReasonLabel {
     pub reason: String,
 }
@@ -51,6 +56,9 @@ pub struct MasterMetrics {
     pub history_hits: Counter,
     pub farm_rays_per_s: GaugeF64,
     pub heap_in_use_bytes: Gauge,
+    pub workers: Gauge,
+    pub workers_lost: Counter,
+    pub tasks_rendered: Family<WorkerLabel, Counter>,
 }
 
 impl Default for MasterMetrics {
@@ -81,6 +89,9 @@ impl MasterMetrics {
             history_hits: Counter::default(),
             farm_rays_per_s: GaugeF64::default(),
             heap_in_use_bytes: Gauge::default(),
+            workers: Gauge::default(),
+            workers_lost: Counter::default(),
+            tasks_rendered: Family::default(),
             registry: Registry::default(),
         };
         registry.register("users", "Admitted users (sessions)", m.users.clone());
@@ -101,6 +112,9 @@ impl MasterMetrics {
         registry.register("history_hits", "Frames served from the history table or a user's own last frame", m.history_hits.clone());
         registry.register("farm_rays_per_second", "Measured render throughput of the farm, rays per second", m.farm_rays_per_s.clone());
         registry.register("heap_in_use_bytes", "Bytes the process's allocator has handed out and not had back (live heap), read when scraped", m.heap_in_use_bytes.clone());
+        registry.register("workers", "Render workers up", m.workers.clone());
+        registry.register("workers_lost", "Render workers that left or were lost", m.workers_lost.clone());
+        registry.register("tasks_rendered", "Render tasks rendered, by the worker that rendered them", m.tasks_rendered.clone());
         Self { registry, ..m }
     }
 
@@ -146,7 +160,19 @@ impl MasterMetrics {
             CoreEvent::TaskCancelled => {
                 self.tasks_cancelled.inc();
             }
-            CoreEvent::TaskRendered { render_ms } => self.render_ms.observe(*render_ms),
+            CoreEvent::TaskRendered { render_ms, worker, ok } => {
+                self.render_ms.observe(*render_ms);
+                if *ok {
+                    self.tasks_rendered.get_or_create(&WorkerLabel { worker: worker.clone() }).inc();
+                }
+            }
+            CoreEvent::WorkerUp { workers, .. } => {
+                self.workers.set(i64::try_from(*workers).unwrap_or(i64::MAX));
+            }
+            CoreEvent::WorkerLost { workers, .. } => {
+                self.workers.set(i64::try_from(*workers).unwrap_or(i64::MAX));
+                self.workers_lost.inc();
+            }
             CoreEvent::HistoryHit => {
                 self.history_hits.inc();
             }

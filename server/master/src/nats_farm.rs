@@ -347,7 +347,7 @@ impl FarmLoop {
         let frames = frames_from(&sizes, &joined, p.task.needs_depth).map_err(|e| e.to_string())?;
         let round_trip_ms = p.sent_at.elapsed().as_secs_f64() * 1e3;
         let transfer_ms = (round_trip_ms - p.render_ms).max(0.0);
-        Ok(Some(TaskResult { id, frames: Ok(frames), render_ms: p.render_ms, transfer_ms, bytes: joined.len() as u64 }))
+        Ok(Some(TaskResult { id, frames: Ok(frames), render_ms: p.render_ms, transfer_ms, bytes: joined.len() as u64, rendered_by: p.accepted_by.clone() }))
     }
 
     async fn check_deadlines(&mut self) {

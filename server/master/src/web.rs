@@ -99,6 +99,7 @@ const PAGES: &[(&str, &str, &str)] = &[
     ("/camera.js", "text/javascript; charset=utf-8", include_str!("../../../web/camera.js")),
     ("/pose.js", "text/javascript; charset=utf-8", include_str!("../../../web/pose.js")),
     ("/connection.js", "text/javascript; charset=utf-8", include_str!("../../../web/connection.js")),
+    ("/join.js", "text/javascript; charset=utf-8", include_str!("../../../web/join.js")),
     ("/hud.js", "text/javascript; charset=utf-8", include_str!("../../../web/hud.js")),
     ("/presented.js", "text/javascript; charset=utf-8", include_str!("../../../web/presented.js")),
     ("/viewer.js", "text/javascript; charset=utf-8", include_str!("../../../web/viewer.js")),

@@ -20,8 +20,11 @@ use nephele_farm::{
 pub struct RenderArgs {
     /// A .nolf file, builtin:<lego|diffuse|shiny|translucent|trio>[-small], or a scene file
     /// (.json: several assets composed by depth).
-    #[arg(default_value = DEFAULT_ASSET)]
+    #[arg(long, default_value = DEFAULT_ASSET)]
     asset: String,
+    /// Deprecated spelling: the asset as a positional argument (use --asset).
+    #[arg(hide = true)]
+    asset_positional: Option<String>,
     /// Camera pose: JSON with a row-major 4×4 camera-to-world `transform_matrix` (NeRF style)
     /// and optionally `camera_angle_x`. Overrides the orbit options.
     #[arg(long)]
@@ -81,8 +84,24 @@ pub struct GenerateArgs {
 
 #[derive(clap::Args)]
 pub struct InfoArgs {
-    #[arg(default_value = DEFAULT_ASSET)]
+    /// A .nolf file or builtin:<name>.
+    #[arg(long, default_value = DEFAULT_ASSET)]
     asset: String,
+    /// Deprecated spelling: the asset as a positional argument (use --asset).
+    #[arg(hide = true)]
+    asset_positional: Option<String>,
+}
+
+/// `--asset` names an asset everywhere; the positional form of `render` and `info` still
+/// works, with a warning, until scripts have moved.
+fn asset_of(command: &str, asset: String, positional: Option<String>) -> String {
+    match positional {
+        Some(p) => {
+            eprintln!("warning: `nephele {command} ASSET` is deprecated; use `nephele {command} --asset {p}`");
+            p
+        }
+        None => asset,
+    }
 }
 
 #[derive(serde::Deserialize)]
@@ -93,7 +112,8 @@ struct PoseFile {
     intrinsics: Option<[f32; 4]>,
 }
 
-pub fn render(args: RenderArgs) -> Result<()> {
+pub fn render(mut args: RenderArgs) -> Result<()> {
+    args.asset = asset_of("render", std::mem::take(&mut args.asset), args.asset_positional.take());
     let settings = args.knobs.settings()?;
     let (w, h) = parse_size(&args.size)?;
     let background = parse_color(&args.background)?;
@@ -196,7 +216,7 @@ pub fn generate(args: GenerateArgs) -> Result<()> {
 }
 
 pub fn info(args: InfoArgs) -> Result<()> {
-    let a = load_asset(&args.asset)?;
+    let a = load_asset(&asset_of("info", args.asset, args.asset_positional))?;
     let m = &a.march;
     println!(
         "name: {}\nbounds: {:?}\nstep: {}\nmiss below α_c {}, early stop at T < {}, hits: τ {} and at most {} per ray\nprovenance: {}\n\n{}",

@@ -23,8 +23,8 @@ pub struct ReplayArgs {
     signal: String,
     #[arg(long, default_value = "trio")]
     scene: String,
-    /// viewer or ar.
-    #[arg(long, default_value = "viewer")]
+    /// The display mode the client asks for.
+    #[arg(long, default_value = "viewer", value_parser = ["viewer", "ar"])]
     mode: String,
     #[arg(long, default_value = "640x480")]
     size: String,

@@ -51,10 +51,13 @@ pub struct MasterOptions {
     /// Render-time target of `--render-scale auto`, ms.
     #[arg(long, default_value_t = 30.0)]
     pub frame_budget_ms: f64,
-    /// Batch the views of users of one scene into one render task per round (NEPHELE
-    /// §6.2.1); `false` renders each user's frame as its own task.
-    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
-    pub batching: bool,
+    /// Render each user's frame as its own task instead of batching the views of users of
+    /// one scene into one render task per round (NEPHELE §6.2.1, the default).
+    #[arg(long)]
+    pub no_batching: bool,
+    /// Deprecated spelling: `--batching false` is `--no-batching`.
+    #[arg(long, hide = true, action = clap::ArgAction::Set)]
+    pub batching: Option<bool>,
     /// A frame whose pose is nearly a pose period old may wait up to this share of the
     /// period for the next pose, so it shows a fresh one (0: never waits; at most 0.5).
     #[arg(long, default_value_t = nephele_core::POSE_LATCH, value_parser = nephele_core::parse_pose_latch)]
@@ -116,6 +119,18 @@ impl NatsArgs {
 }
 
 impl MasterOptions {
+    /// Whether views are batched: on unless `--no-batching` (or the old `--batching false`,
+    /// which still works, with a warning).
+    fn batching(&self) -> bool {
+        match self.batching {
+            Some(b) => {
+                eprintln!("warning: `--batching {b}` is deprecated; batching is on by default and `--no-batching` turns it off");
+                b && !self.no_batching
+            }
+            None => !self.no_batching,
+        }
+    }
+
     /// Loads the scenes on the chosen backend and builds the master's configuration.
     pub fn load(&self, name: &str) -> Result<(Arc<Catalog>, MasterConfig)> {
         let render_scale = RenderScale::parse(&self.render_scale, self.frame_budget_ms).map_err(anyhow::Error::msg)?;
@@ -131,7 +146,7 @@ impl MasterOptions {
             name: name.into(),
             token: self.master_token.clone(),
             rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
-            core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching, admission: self.admission, pose_latch: self.pose_latch, ..Default::default() },
+            core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching(), admission: self.admission, pose_latch: self.pose_latch, ..Default::default() },
             workers: self.workers,
             compose: self.compose,
             bits_per_pixel: self.bits_per_pixel,

@@ -45,8 +45,8 @@ pub struct TrainOptions {
     /// Checkpoints of the stages (default: the asset path with .train).
     #[arg(long)]
     pub work: Option<PathBuf>,
-    /// tiny, fast, default or quality.
-    #[arg(long, default_value = "default")]
+    /// How much training: tiny, fast, default or quality.
+    #[arg(long, default_value = "default", value_parser = clap::builder::PossibleValuesParser::new(TrainConfig::PRESETS))]
     pub preset: String,
     /// Steps of the i-NGP stage (default: tiny 500, fast 2000, default 6000, quality 20000).
     #[arg(long)]

@@ -52,6 +52,121 @@ impl Default for QuiltSpec {
     }
 }
 
+/// What a client asks for when it joins: the one definition of the join's fields and of the
+/// rules they must keep ([`JoinSpec::check`]). Signaling checks it before pairing, the master's
+/// core checks it again (a master may sit behind another signaling server), and the pages
+/// check it against the same rules as published at `GET /limits` ([`JoinLimits`]); all three
+/// say the same words for the same fault.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JoinSpec {
+    /// Scene name: 1..=64 characters from `[A-Za-z0-9_-]`.
+    pub scene: String,
+    /// Display mode.
+    pub mode: Mode,
+    /// Frame width in pixels (`nephele_limits::check_stream_size`).
+    pub width: u32,
+    /// Frame height in pixels.
+    pub height: u32,
+    /// Frame rate in frames per second, `MIN_FPS..=MAX_FPS` (1..=120).
+    pub fps: u32,
+    /// Quilt layout (mode `quilt` only; [`QuiltSpec::default`] when absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quilt: Option<QuiltSpec>,
+}
+
+/// Why a join breaks its specification; the text is what the client is told.
+#[derive(Clone, Debug, PartialEq)]
+pub enum JoinError {
+    /// The scene name is not 1..=64 characters of `[A-Za-z0-9_-]`.
+    SceneName,
+    /// A quilt layout with a mode other than `quilt`.
+    QuiltWithoutQuiltMode,
+    /// A size, rate or quilt layout outside `nephele_limits`.
+    Limit(nephele_limits::LimitError),
+}
+
+impl std::fmt::Display for JoinError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::SceneName => write!(f, "scene must be 1 to 64 characters of A-Z a-z 0-9 _ -"),
+            Self::QuiltWithoutQuiltMode => write!(f, "a quilt layout is only for mode \"quilt\""),
+            Self::Limit(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+impl std::error::Error for JoinError {}
+
+impl JoinSpec {
+    /// The join as it will be served: mode `quilt` without a layout gets the default one.
+    pub fn with_defaults(mut self) -> Self {
+        if self.mode == Mode::Quilt && self.quilt.is_none() {
+            self.quilt = Some(QuiltSpec::default());
+        }
+        self
+    }
+
+    /// Checks every rule, in a fixed order (name, quilt with its mode, size, rate, quilt
+    /// layout): the first broken one is the error.
+    pub fn check(&self) -> Result<(), JoinError> {
+        if !is_valid_name(&self.scene) {
+            return Err(JoinError::SceneName);
+        }
+        if self.quilt.is_some() && self.mode != Mode::Quilt {
+            return Err(JoinError::QuiltWithoutQuiltMode);
+        }
+        let quilt = match (self.mode, self.quilt) {
+            (Mode::Quilt, q) => Some(q.unwrap_or_default()),
+            _ => None,
+        };
+        nephele_limits::check_stream_size(self.width, self.height)
+            .and_then(|()| nephele_limits::check_fps(self.fps))
+            .and_then(|()| match quilt {
+                Some(q) => nephele_limits::check_quilt(q.cols, q.rows, q.cone_deg, self.width, self.height),
+                None => Ok(()),
+            })
+            .map_err(JoinError::Limit)
+    }
+
+    /// Pixels per second this join asks for at full resolution.
+    pub fn pixel_rate(&self) -> f64 {
+        f64::from(self.width) * f64::from(self.height) * f64::from(self.fps)
+    }
+}
+
+/// The rules of [`JoinSpec::check`] as numbers, for clients that check a join before sending
+/// it (the pages fetch them from `GET /limits`; `web/join.js` applies them with the same
+/// words). Built from `nephele_limits`, never kept by hand.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JoinLimits {
+    pub modes: Vec<Mode>,
+    pub name_max_chars: usize,
+    pub min_fps: u32,
+    pub max_fps: u32,
+    pub max_long_edge_px: u32,
+    pub max_short_edge_px: u32,
+    pub max_quilt_views: u32,
+    pub max_quilt_cone_deg: f32,
+    pub default_quilt: QuiltSpec,
+}
+
+impl JoinLimits {
+    /// The limits this build enforces.
+    pub fn current() -> Self {
+        Self {
+            modes: vec![Mode::Viewer, Mode::Ar, Mode::Vr, Mode::Quilt],
+            name_max_chars: 64,
+            min_fps: nephele_limits::MIN_FPS,
+            max_fps: nephele_limits::MAX_FPS,
+            max_long_edge_px: nephele_limits::MAX_STREAM_LONG_EDGE_PX,
+            max_short_edge_px: nephele_limits::MAX_STREAM_SHORT_EDGE_PX,
+            max_quilt_views: nephele_limits::MAX_QUILT_VIEWS,
+            max_quilt_cone_deg: nephele_limits::MAX_QUILT_CONE_DEG,
+            default_quilt: QuiltSpec::default(),
+        }
+    }
+}
+
 /// Any message sent *to* signaling, by a client or by a master.
 ///
 /// The hub checks that each message suits the sender's role.
@@ -60,22 +175,12 @@ impl Default for QuiltSpec {
 pub enum ToSignal {
     /// Client: ask for a session on a master with room.
     Join {
-        /// Scene name: 1..=64 characters from `[A-Za-z0-9_-]`.
-        scene: String,
-        /// Display mode.
-        mode: Mode,
-        /// Requested frame width in pixels (limits: `nephele_limits::check_stream_size`).
-        width: u32,
-        /// Requested frame height in pixels.
-        height: u32,
-        /// Requested frame rate in frames per second, `MIN_FPS..=MAX_FPS` (1..=120).
-        fps: u32,
+        /// What the client asks for ([`JoinSpec`]: scene, mode, size, rate, quilt).
+        #[serde(flatten)]
+        spec: JoinSpec,
         /// Shared secret; required when signaling is configured with a token.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         token: Option<String>,
-        /// Quilt layout (mode `quilt` only; defaults when absent).
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        quilt: Option<QuiltSpec>,
     },
     /// Client: the WebRTC offer for its session (after `joined`).
     Offer {
@@ -194,19 +299,9 @@ pub enum ToMaster {
     Join {
         /// Session id; quote it in every message about this session.
         session: String,
-        /// Scene name (validated: 1..=64 of `[A-Za-z0-9_-]`).
-        scene: String,
-        /// Display mode.
-        mode: Mode,
-        /// Frame width in pixels.
-        width: u32,
-        /// Frame height in pixels.
-        height: u32,
-        /// Frame rate in frames per second.
-        fps: u32,
-        /// Quilt layout (mode `quilt` only, filled with the defaults when the client gave none).
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        quilt: Option<QuiltSpec>,
+        /// The join as checked by signaling, with the quilt default filled in.
+        #[serde(flatten)]
+        spec: JoinSpec,
     },
     /// The client's WebRTC offer.
     Offer {
