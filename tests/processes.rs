@@ -45,31 +45,37 @@ fn split_deployment_signal_master_and_replay_of_a_shipped_trace() {
             .spawn()
             .unwrap(),
     );
-    // The master registers within a moment; until then signaling answers no_capacity.
-    let mut last = String::new();
-    for _ in 0..20 {
-        let o = nephele()
-            .args([
-                "replay", "--trace", trace.to_str().unwrap(), "--signal", &url, "--size", "320x240",
-                "--reference", asset.to_str().unwrap(), "--quality-every", "3", "--json",
-            ])
-            .output()
-            .unwrap();
-        last = format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-        if o.status.success() {
-            let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON report");
-            assert!(report["frames_decoded"].as_u64().unwrap() >= 5, "{report}");
-            assert_eq!(report["frames_unknown_pose"], 0, "{report}");
-            assert_eq!(report["frames_without_pose"], 0, "{report}");
-            let psnr: Vec<f64> = report["quality"].as_array().unwrap().iter().map(|q| q["psnr_db"].as_f64().unwrap()).collect();
-            let min = psnr.iter().copied().fold(f64::INFINITY, f64::min);
-            assert!(!psnr.is_empty() && min >= 30.0, "min PSNR {min:.2} dB over {} frames: {psnr:?}", psnr.len());
+    // Replay once the master is listed (the event), not after a guessed pause.
+    wait_for_master(&addr, |m| m["scenes"].as_array().is_some_and(|s| !s.is_empty()));
+    let o = nephele()
+        .args([
+            "replay", "--trace", trace.to_str().unwrap(), "--signal", &url, "--size", "320x240",
+            "--reference", asset.to_str().unwrap(), "--quality-every", "3", "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "replay failed: {}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON report");
+    assert!(report["frames_decoded"].as_u64().unwrap() >= 5, "{report}");
+    assert_eq!(report["frames_unknown_pose"], 0, "{report}");
+    assert_eq!(report["frames_without_pose"], 0, "{report}");
+    let psnr: Vec<f64> = report["quality"].as_array().unwrap().iter().map(|q| q["psnr_db"].as_f64().unwrap()).collect();
+    let min = psnr.iter().copied().fold(f64::INFINITY, f64::min);
+    println!("min PSNR {min:.2} dB over {} frames", psnr.len());
+    assert!(!psnr.is_empty() && min >= 30.0, "min PSNR {min:.2} dB over {} frames: {psnr:?}", psnr.len());
+}
+
+/// Waits (polling signaling's `/status`, at most 60 s as a guard against a hang) until a
+/// registered master satisfies `ready`.
+fn wait_for_master(addr: &str, ready: impl Fn(&serde_json::Value) -> bool) {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        if status(addr).is_some_and(|s| s["masters"].as_array().is_some_and(|ms| ms.iter().any(&ready))) {
             return;
         }
-        assert!(last.contains("NoCapacity") || last.contains("UnknownScene"), "replay failed: {last}");
-        std::thread::sleep(std::time::Duration::from_millis(250));
+        assert!(std::time::Instant::now() < deadline, "no master became ready: {:?}", status(addr));
+        std::thread::sleep(std::time::Duration::from_millis(50));
     }
-    panic!("the master never took a session: {last}");
 }
 
 
@@ -92,25 +98,21 @@ fn a_stopped_master_is_noticed_within_seconds() {
         let json: serde_json::Value = serde_json::from_str(body.split("\r\n\r\n").nth(1).unwrap()).unwrap();
         json["masters"].as_array().unwrap().len()
     };
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
-    while masters() == 0 {
-        assert!(std::time::Instant::now() < deadline, "the master never registered");
-        std::thread::sleep(std::time::Duration::from_millis(100));
-    }
-    // Registered and heart-beating; now it stops.
-    std::thread::sleep(std::time::Duration::from_millis(1500));
+    // Registered and heart-beating (its first heartbeat reports free rays/s); now it stops.
+    wait_for_master(&addr, |m| m["free_rays_per_s"].is_number());
     let pid = master.0.id().to_string();
     assert!(std::process::Command::new("kill").args(["-STOP", &pid]).status().unwrap().success());
     let stopped = std::time::Instant::now();
+    // The exact rule (dropped after 3 s of silence, checked at every tick) is tested on
+    // simulated time in `signaling/src/hub/tests.rs`; here the processes must get there, with
+    // a guard far above it (the old behaviour took ~16 s).
     while masters() > 0 {
-        assert!(stopped.elapsed() < std::time::Duration::from_secs(10), "the stopped master is still listed");
-        std::thread::sleep(std::time::Duration::from_millis(100));
+        assert!(stopped.elapsed() < std::time::Duration::from_secs(12), "the stopped master is still listed");
+        std::thread::sleep(std::time::Duration::from_millis(50));
     }
     let noticed = stopped.elapsed();
     let _ = std::process::Command::new("kill").args(["-CONT", &pid]).status();
     println!("stopped master dropped after {:.2} s", noticed.as_secs_f64());
-    // Silence of 3 s, checked four times per timeout: at most ~3.75 s (+ one heartbeat).
-    assert!(noticed <= std::time::Duration::from_millis(4800), "noticed after {noticed:?}");
 }
 
 /// `GET /status` of signaling at `addr`, parsed (`None` while it is down).
@@ -141,16 +143,13 @@ async fn streams_survive_a_signaling_restart() {
     let signal = spawn_signal_at(&addr);
     let _master = nephele_e2e::spawn_fixture_master(&addr);
     let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, keep_pixels: false, quilt: None };
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let mut client = loop {
-        match StreamClient::connect(&opts).await {
-            Ok(c) => break c,
-            Err(e) => {
-                assert!(Instant::now() < deadline, "the master never took a session: {e:#}");
-                tokio::time::sleep(Duration::from_millis(250)).await;
-            }
-        }
-    };
+    tokio::task::spawn_blocking({
+        let addr = addr.clone();
+        move || wait_for_master(&addr, |m| m["free_rays_per_s"].is_number())
+    })
+    .await
+    .unwrap();
+    let mut client = StreamClient::connect(&opts).await.expect("the registered master takes the session");
     // Decoded-frame times, and anything signaling says.
     let arrivals = Arc::new(Mutex::new(Vec::<Instant>::new()));
     let mut frames = std::mem::replace(&mut client.frames, tokio::sync::mpsc::unbounded_channel().1);
@@ -180,9 +179,18 @@ async fn streams_survive_a_signaling_restart() {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     });
-    tokio::time::sleep(Duration::from_secs(2)).await;
-    let before = arrivals.lock().unwrap().len();
-    assert!(before >= 10, "only {before} frames before the restart");
+    // Streaming: at least 10 frames before signaling goes (waited for, not guessed).
+    let frames_seen = |n: usize| {
+        let arrivals = Arc::clone(&arrivals);
+        async move {
+            let guard = Instant::now() + Duration::from_secs(30);
+            while arrivals.lock().unwrap().len() < n {
+                assert!(Instant::now() < guard, "only {} of {n} frames", arrivals.lock().unwrap().len());
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+    };
+    frames_seen(10).await;
 
     // Signaling goes away for a second, then comes back on the same address.
     let killed_at = Instant::now();
@@ -202,7 +210,9 @@ async fn streams_survive_a_signaling_restart() {
         assert!(killed_at.elapsed() < Duration::from_secs(20), "the master did not register again with its session");
         tokio::time::sleep(Duration::from_millis(100)).await;
     };
-    tokio::time::sleep(Duration::from_secs(1)).await;
+    // 25 frames after the kill (about a second of stream) before the count is read.
+    let at_kill = arrivals.lock().unwrap().iter().filter(|t| **t < killed_at).count();
+    frames_seen(at_kill + 25).await;
     let times = arrivals.lock().unwrap().clone();
     let during = times.iter().filter(|t| **t >= killed_at).count();
     let gap = times.windows(2).map(|w| w[1] - w[0]).max().unwrap();

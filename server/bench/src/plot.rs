@@ -71,7 +71,7 @@ fn draw_lines<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, labels: &Labels
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2)));
         chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, colour.filled()))).map_err(drawing)?;
     }
-    legend(&mut chart)
+    legend(&mut chart, SeriesLabelPosition::UpperRight)
 }
 
 fn draw_dots<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, labels: &Labels<'_>, series: &[DotSeries], log_x: bool) -> Result<()> {
@@ -91,7 +91,8 @@ fn draw_dots<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, labels: &Labels<
             .label(s.name.as_str())
             .legend(move |(x, y)| Circle::new((x + 8, y), 5, colour.filled()));
     }
-    legend(&mut chart)
+    // Slow and poor is the emptiest corner of a speed/accuracy chart.
+    legend(&mut chart, SeriesLabelPosition::LowerRight)
 }
 
 type Chart<'a, DB> = ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>>;
@@ -121,10 +122,10 @@ fn frame<'a, DB: DrawingBackend>(root: &'a DrawingArea<DB, Shift>, labels: &Labe
     Ok(chart)
 }
 
-fn legend<'a, DB: DrawingBackend + 'a>(chart: &mut Chart<'a, DB>) -> Result<()> {
+fn legend<'a, DB: DrawingBackend + 'a>(chart: &mut Chart<'a, DB>, at: SeriesLabelPosition) -> Result<()> {
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
+        .position(at)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .label_font((FONT, 13))
