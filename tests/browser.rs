@@ -21,14 +21,7 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     let addr = server.addr;
 
     let url = format!("http://{addr}/");
-    let output = tokio::task::spawn_blocking(move || {
-        let mut cmd = nephele_e2e::node(&script);
-        cmd.arg(url).env("CHROMIUM", chromium);
-        nephele_e2e::node_output(cmd)
-    })
-    .await
-        .unwrap()
-        .expect("running node (install nodejs; tests/run does)");
+    let output = browser_check(script, url, chromium).await;
     let stdout = String::from_utf8_lossy(&output.stdout);
     let stderr = String::from_utf8_lossy(&output.stderr);
     println!("{stdout}\n{stderr}");
@@ -38,6 +31,19 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     assert!(report["framesDecoded"].as_u64().unwrap() >= 10, "{report}");
     assert!(report["arFramesDecoded"].as_u64().unwrap() >= 5, "{report}");
     assert!(report["meanAbsDiff"].as_f64().unwrap() > 2.0, "{report}");
+}
+
+/// Runs `node SCRIPT URL` with Chromium at `chromium` to its end (node and the browser are
+/// ended as one process group however it goes) and returns its output.
+async fn browser_check(script: PathBuf, url: String, chromium: String) -> std::process::Output {
+    tokio::task::spawn_blocking(move || {
+        let mut cmd = nephele_e2e::node(&script);
+        cmd.arg(url).env("CHROMIUM", chromium);
+        nephele_e2e::node_output(cmd)
+    })
+    .await
+    .unwrap()
+    .expect("running node (install nodejs; tests/run does)")
 }
 
 /// Starts `nephele serve` on `addr` and waits for its "open http://…" line.
@@ -133,14 +139,7 @@ async fn the_headset_page_streams_both_eyes_in_webxr() {
     let (server, catalog) = nephele_e2e::start_server(core_config(4)).await;
     let url = format!("http://{}/", server.addr);
     let script = repo().join("tests/browser/xr.mjs");
-    let output = tokio::task::spawn_blocking(move || {
-        let mut cmd = nephele_e2e::node(&script);
-        cmd.arg(url).env("CHROMIUM", chromium);
-        nephele_e2e::node_output(cmd)
-    })
-    .await
-    .unwrap()
-    .expect("running node");
+    let output = browser_check(script, url, chromium).await;
     let stdout = String::from_utf8_lossy(&output.stdout);
     let last = stdout.lines().last().unwrap_or_default();
     let report: serde_json::Value = serde_json::from_str(last).unwrap_or_else(|_| panic!("no JSON report: {stdout} {}", String::from_utf8_lossy(&output.stderr)));
