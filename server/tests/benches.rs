@@ -61,7 +61,7 @@ fn bench_render() {
 #[test]
 fn bench_encode() {
     let (r, table) = bench(&["encode", "--sizes", "64x48", "--frames", "6", "--asset", "builtin:trio-small", "--bits-per-pixel", "0.1,0.3", "--threads", "1"]);
-    assert_eq!(rows(&r, "rows", &["convert_ms_p50", "convert_ms_p99", "encode_ms_p50", "encode_ms_p99", "bytes_per_frame", "idr_bytes", "psnr_db", "target_kbps"]), 4, "pattern and asset × two rates");
+    assert_eq!(rows(&r, "rows", &["convert_ms_p50", "convert_ms_p99", "encode_ms_p50", "encode_ms_p99", "bytes_per_frame", "idr_bytes", "psnr_db", "bitrate_bps"]), 4, "pattern and asset × two rates");
     for row in r["rows"].as_array().unwrap() {
         assert!(row["psnr_db"].as_f64().unwrap() > 20.0, "{row}");
     }

@@ -7,7 +7,7 @@ use std::fmt::Write;
 use anyhow::Result;
 use glam::DVec3;
 use nephele_farm::assets::{DEFAULT_ASSET, load_asset, parse_size};
-use nephele_master::encoder::{DEFAULT_BITS_PER_PIXEL, bench_encode, check_bits_per_pixel, check_encoder_threads, default_encoder_threads, pattern_frames};
+use nephele_master::encoder::{BenchResult, DEFAULT_BITS_PER_PIXEL, bench_encode, check_bits_per_pixel, check_encoder_threads, default_encoder_threads, pattern_frames};
 use nephele_renderer::{Backend as _, Intrinsics, RenderSettings, View, ViewRequest};
 use serde::Serialize;
 
@@ -33,23 +33,14 @@ pub struct EncodeArgs {
     pub json: bool,
 }
 
-/// One content × size × bit rate × thread count.
+/// One content × size × bit rate × thread count: the encoder's own measurement.
 #[derive(Debug, Clone, Serialize)]
 pub struct EncodeRow {
     pub content: String,
-    pub width: u32,
-    pub height: u32,
-    pub frames: u32,
     pub bits_per_pixel: f64,
     pub threads: u16,
-    pub target_kbps: u32,
-    pub convert_ms_p50: f64,
-    pub convert_ms_p99: f64,
-    pub encode_ms_p50: f64,
-    pub encode_ms_p99: f64,
-    pub bytes_per_frame: f64,
-    pub idr_bytes: usize,
-    pub psnr_db: f64,
+    #[serde(flatten)]
+    pub result: BenchResult,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -85,23 +76,7 @@ pub fn run(args: EncodeArgs) -> Result<()> {
         for (name, content) in contents {
             for &bpp in &bits_per_pixel {
                 for &t in &threads {
-                    let r = bench_encode(w, h, &content, bpp, t)?;
-                    rows.push(EncodeRow {
-                        content: name.clone(),
-                        width: w,
-                        height: h,
-                        frames: r.frames,
-                        bits_per_pixel: bpp,
-                        threads: t,
-                        target_kbps: r.bitrate_bps / 1000,
-                        convert_ms_p50: r.convert_ms_p50,
-                        convert_ms_p99: r.convert_ms_p99,
-                        encode_ms_p50: r.encode_ms_p50,
-                        encode_ms_p99: r.encode_ms_p99,
-                        bytes_per_frame: r.bytes_per_frame,
-                        idr_bytes: r.idr_bytes,
-                        psnr_db: r.psnr_db,
-                    });
+                    rows.push(EncodeRow { content: name.clone(), bits_per_pixel: bpp, threads: t, result: bench_encode(w, h, &content, bpp, t)? });
                 }
             }
         }
@@ -115,10 +90,11 @@ pub fn format_table(report: &EncodeReport) -> String {
     let _ = writeln!(out, "| content | size | frames | bits/pixel | threads | kbit/s target | RGB→I420 p50 / p99 ms | encode p50 / p99 ms | bytes/frame | IDR bytes | PSNR dB |");
     let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &report.rows {
+        let e = &r.result;
         let _ = writeln!(
             out,
             "| {} | {}x{} | {} | {} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} | {} | {:.2} |",
-            r.content, r.width, r.height, r.frames, r.bits_per_pixel, r.threads, r.target_kbps, r.convert_ms_p50, r.convert_ms_p99, r.encode_ms_p50, r.encode_ms_p99, r.bytes_per_frame, r.idr_bytes, r.psnr_db
+            r.content, e.width, e.height, e.frames, r.bits_per_pixel, r.threads, e.bitrate_bps / 1000, e.convert_ms_p50, e.convert_ms_p99, e.encode_ms_p50, e.encode_ms_p99, e.bytes_per_frame, e.idr_bytes, e.psnr_db
         );
     }
     out

@@ -486,7 +486,7 @@ pub fn test_pattern(width: u32, height: u32, frame_index: u32, rgba: &mut Vec<u8
     }
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize)]
 pub struct BenchResult {
     pub width: u32,
     pub height: u32,
