@@ -14,13 +14,13 @@ use std::{
     time::{Duration, Instant},
 };
 
-use nephele_client::{ClientOptions, StreamClient, replay::Trace};
+use nephele_client::{ClientOptions, Receive, StreamClient, replay::Trace};
 use nephele_wire::PoseMessage;
 use nephele_e2e::core_config;
 use nephele_signaling::Mode;
 
 fn client_opts(signal_url: &str, width: u32, height: u32) -> ClientOptions {
-    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, keep_pixels: false, quilt: None }
+    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, receive: Receive::Decode, quilt: None }
 }
 
 fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {
@@ -93,8 +93,10 @@ async fn leaving_cancels_the_render_of_a_4k_frame() {
     for seq in 1..=cycles {
         let client = StreamClient::connect(&client_opts(&url, 3840, 2160)).await.expect("the 4K client connects");
         client.send_pose(&pose(seq, 3840, 2160)).await.unwrap();
-        // Long enough for the task to start rendering, far shorter than the render.
-        tokio::time::sleep(Duration::from_millis(150)).await;
+        // Leave once the 4K task is on a worker (the bystander's tasks are 19,200 rays),
+        // far sooner than it takes to render.
+        let started = nephele_e2e::wait_until(Duration::from_secs(10), || server.metrics.rays_in_flight.get() >= 3840 * 2160).await;
+        assert!(started, "cycle {seq}: the 4K task never reached a worker");
         client.close().await;
     }
     let during = (bystander.frames() - attack_start.1) as f64 / attack_start.0.elapsed().as_secs_f64();

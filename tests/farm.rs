@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use futures_util::StreamExt;
-use nephele_client::replay::{ReplayOptions, ReplayReport, Trace, replay};
+use nephele_client::{Receive, replay::{ReplayOptions, ReplayReport, Trace, replay}};
 use nephele_farm::protocol::{self, WorkerAnnouncement};
 use nephele_e2e::{NatsServer, TempDir, core_config, fixture_scene, nephele, spawn_worker, start_nats_master};
 use nephele_signaling::Mode;
@@ -24,7 +24,7 @@ fn opts(url: String, scene: &str, size: (u32, u32), fps: u32) -> ReplayOptions {
             height: size.1,
             fps,
             token: None,
-            keep_pixels: false,
+            receive: Receive::Decode,
             quilt: None,
         },
         anchor: None,
@@ -69,11 +69,8 @@ async fn a_killed_worker_has_its_tasks_re_issued_and_the_stream_carries_on() {
         let label = nephele_master::metrics::WorkerLabel { worker: worker.into() };
         server.metrics.tasks_rendered.get_or_create(&label).get()
     };
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
-    while rendered_by("w-first") == 0 || rendered_by("w-second") == 0 || server.metrics.frames.get() < 25 {
-        assert!(tokio::time::Instant::now() < deadline, "both workers never rendered: {}", server.metrics.encode());
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    let both = nephele_e2e::wait_until(Duration::from_secs(20), || rendered_by("w-first") > 0 && rendered_by("w-second") > 0 && server.metrics.frames.get() >= 25).await;
+    assert!(both, "both workers never rendered: {}", server.metrics.encode());
     let frames_at_kill = server.metrics.frames.get();
     let first_before = rendered_by("w-first");
     first.take(); // kill -9 and reap
@@ -234,7 +231,7 @@ async fn a_composed_scene_renders_its_objects_on_the_farm() {
     trace.period_ms = 150.0;
     let mut o = opts(server.signal_url(), "pair", (640, 480), 10);
     o.quality_every = 1;
-    o.client.keep_pixels = true;
+    o.client.receive = Receive::Pixels;
     let reference = |view, instance, _bg| catalog.render_scene("pair", view, instance, glam::Vec3::new(0.9, 0.95, 1.0));
     let report = replay(&trace, &o, Some(&reference)).await.unwrap();
     println!("{report}");

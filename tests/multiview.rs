@@ -12,7 +12,7 @@
 use std::time::Duration;
 
 use glam::{DMat4, DVec3, Vec3};
-use nephele_client::{ClientOptions, ReceivedFrame, StreamClient, replay::psnr_rgb};
+use nephele_client::{ClientOptions, Receive, ReceivedFrame, StreamClient, replay::psnr_rgb};
 use nephele_wire::{MultiViewPose, PoseMessage, PoseView, ToViewer, Viewport, background_of};
 use nephele_e2e::{TempDir, core_config, nephele};
 use nephele_renderer::{
@@ -22,7 +22,7 @@ use nephele_renderer::{
 use nephele_signaling::{Mode, QuiltSpec};
 
 fn opts(addr: std::net::SocketAddr, mode: Mode, size: (u32, u32), quilt: Option<QuiltSpec>) -> ClientOptions {
-    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width: size.0, height: size.1, fps: 25, token: None, keep_pixels: true, quilt }
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width: size.0, height: size.1, fps: 25, token: None, receive: Receive::Pixels, quilt }
 }
 
 /// Sends `pose(seq)` every 20 ms for `secs`, then returns the last decoded frame that

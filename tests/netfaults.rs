@@ -33,7 +33,7 @@ use std::{
     time::{Duration, Instant},
 };
 
-use nephele_client::{ClientNet, ClientOptions, POSE_BACKLOG_FREE, ReceiveCounts, StreamClient, replay::Trace};
+use nephele_client::{ClientNet, ClientOptions, POSE_BACKLOG_FREE, Receive, ReceiveCounts, StreamClient, replay::Trace};
 use nephele_wire::ToViewer;
 use nephele_e2e::{Reap, ShowLogOnFailure, fixture_scene, nephele_bin, spawn_serve};
 use nephele_signaling::Mode;
@@ -381,9 +381,9 @@ async fn the_stream_survives_loss_jitter_and_a_blackout() {
             s.set_udp_network(UDPNetwork::Muxed(mux.clone()));
             s.set_ip_filter(Box::new(move |ip| ip == root_ip));
         })),
-        source_ip: None,
+        ..ClientNet::default()
     };
-    let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: FPS, token: None, keep_pixels: false, quilt: None };
+    let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: FPS, token: None, receive: Receive::Decode, quilt: None };
     let mut client = StreamClient::connect_with(&opts, &net).await.expect("the client connects to the server in the namespace");
 
     // Frames, signaling and viewer messages are logged in the background.

@@ -136,13 +136,13 @@ async fn streams_survive_a_signaling_restart() {
         time::{Duration, Instant},
     };
 
-    use nephele_client::{ClientOptions, StreamClient, replay::Trace};
+    use nephele_client::{ClientOptions, Receive, StreamClient, replay::Trace};
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let addr = format!("127.0.0.1:{port}");
     let url = format!("ws://{addr}/signal");
     let signal = spawn_signal_at(&addr);
     let _master = nephele_e2e::spawn_fixture_master(&addr);
-    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, keep_pixels: false, quilt: None };
+    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, receive: Receive::Decode, quilt: None };
     tokio::task::spawn_blocking({
         let addr = addr.clone();
         move || wait_for_master(&addr, |m| m["free_rays_per_s"].is_number())

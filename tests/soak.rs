@@ -56,7 +56,7 @@ use std::{
 };
 
 use futures_util::{SinkExt, StreamExt};
-use nephele_client::{ClientNet, ClientOptions, StreamClient, replay::Trace};
+use nephele_client::{ClientNet, ClientOptions, Receive, StreamClient, replay::Trace};
 use nephele_wire::PoseMessage;
 use nephele_e2e::{Reap, ShowLogOnFailure, nephele, repo, spawn_serve};
 use nephele_signaling::{Mode, ToClient, ToSignal};
@@ -569,7 +569,7 @@ async fn join_and_drop(url: &str) -> Result<(), String> {
 async fn cycle(i: usize, server: SocketAddr, stats: &Stats) -> Result<(bool, bool), String> {
     let ending = Ending::of(i);
     let url = format!("ws://{server}/signal");
-    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, token: None, keep_pixels: false, quilt: None };
+    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, token: None, receive: Receive::Decode, quilt: None };
     if ending == Ending::JoinOnly {
         with_retries(stats, ending, || join_and_drop(&url)).await?;
         return Ok((false, false));

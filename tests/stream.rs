@@ -22,6 +22,7 @@ use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use glam::Mat4;
 use nephele_client::{
+    Receive,
     ClientOptions, StreamClient,
     replay::{ReplayOptions, Trace, replay},
 };
@@ -38,7 +39,7 @@ async fn start_server(capacity: u32) -> (SocketAddr, Arc<Catalog>) {
 }
 
 fn client_opts(addr: SocketAddr, mode: Mode, width: u32, height: u32) -> ClientOptions {
-    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, keep_pixels: true, quilt: None }
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, receive: Receive::Pixels, quilt: None }
 }
 
 fn short_trace(name: &str, poses: usize) -> Trace {
@@ -299,7 +300,7 @@ async fn users_with_different_fps_each_get_their_own_poses() {
         trace.poses.rotate_left(40 * i);
         let mut client = client_opts(addr, Mode::Viewer, 96, 72);
         client.fps = fps;
-        client.keep_pixels = false;
+        client.receive = Receive::Decode;
         let opts = ReplayOptions { client, anchor: None, quality_every: 0, save_dir: None, drain: Duration::from_secs(1), start_at: None, stereo_baseline: None };
         runs.push((fps, tokio::spawn(async move { replay(&trace, &opts, None).await })));
     }

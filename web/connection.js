@@ -5,8 +5,10 @@
 //     page's pose bytes every 20 ms (from its `pose` callback), frame-info/latency
 //     bookkeeping, getStats polling, automatic reconnection with backoff (1, 2, 4, … ≤ 10 s),
 //     and the window.nephele debug surface (exposeApi).
-//   * ensureCapturePermission(): Chromium only gathers loopback ICE candidates once the page
-//     holds a capture permission, so we ask for a camera once and keep the stream.
+//   * ensureCapturePermission(): the AR page's camera. Other pages never ask on their own:
+//     only where no connection can be made without it (Chromium offers loopback ICE
+//     candidates only to a page holding a capture grant, which matters on a machine whose
+//     sole interface is loopback) the page says so in words and asks when the person agrees.
 //   * fetchScenes(), readPageOptions(), describeError(): small helpers for the pages.
 
 import { checkJoin, fetchLimits } from './join.js';
@@ -18,19 +20,10 @@ import { PresentedLatency } from './presented.js';
 let capturePromise = null;
 
 /**
- * Ask once per page for a capture stream and hold on to it (never stopped). Chromium only
- * gathers local (loopback) ICE candidates after such a grant. Resolves to the stream, or to
- * null on failure (no camera, denied, insecure context): the session goes on without it.
- * The first caller's constraints win; the AR page asks first for its environment camera.
+ * Ask once per page for a capture stream and hold on to it (never stopped). Resolves to the
+ * stream, or to null on failure (no camera, denied, insecure context). The first caller's
+ * constraints win: the AR page asks for its environment camera.
  */
-/**
- * For pages that never show the camera: take the capture grant (it unlocks loopback ICE
- * candidates) and disable the track at once (keeps the grant, turns the camera light off).
- */
-export function warmUpCapture() {
-  return ensureCapturePermission({ video: true }).then((s) => s?.getTracks().forEach((t) => { t.enabled = false; }));
-}
-
 export function ensureCapturePermission(constraints = { video: true }) {
   if (!capturePromise) {
     const md = navigator.mediaDevices;
@@ -40,6 +33,17 @@ export function ensureCapturePermission(constraints = { video: true }) {
     window.__nepheleCapture = capturePromise; // held for the page's lifetime
   }
   return capturePromise;
+}
+
+/** Whether this page holds (or has asked for) a capture stream. */
+function captureAsked() {
+  return capturePromise !== null;
+}
+
+/** A page served from this machine's loopback address. */
+export function isLoopbackPage() {
+  const h = location.hostname;
+  return h === 'localhost' || h === '[::1]' || h === '::1' || /^127\./.test(h);
 }
 
 /** GET scenes → {scenes:[...], default}; falls back to trio if the server does not say. */
@@ -70,6 +74,8 @@ export function readPageOptions({ width = 640, height = 480 } = {}) {
     // Out-of-range rates are refused in words at join (the server's published limits).
     fps: parseInt(q.get('fps'), 10) || 50,
     token: q.get('token') || undefined,
+    // ?relay=1: TURN relay candidates only (iceTransportPolicy "relay"), to try the relay.
+    relay: q.get('relay') === '1',
   };
 }
 
@@ -92,6 +98,7 @@ const ERROR_WORDS = {
   unreachable: 'Cannot reach the server',
   peer_failed: 'The video connection failed',
   timeout: 'The video connection did not come up in time',
+  no_candidates: 'No network path for the video',
 };
 
 // Codes this page makes up itself: shown without the code.
@@ -105,6 +112,8 @@ export function describeError(code, message) {
 }
 
 // Errors after which retrying cannot help until the user changes something.
+// Failures a hidden loopback candidate explains (see fail()).
+const CANDIDATE_CODES = new Set(['no_candidates', 'peer_failed', 'timeout']);
 const FATAL_CODES = new Set(['unauthorized', 'bad_request', 'rejected', 'unknown_scene', 'bad_message', 'too_large', 'wrong_role', 'not_joined']);
 
 const POSE_PERIOD_MS = 20;
@@ -178,8 +187,9 @@ export class Connection {
     this.onChange?.();
   }
 
-  setBanner(text, kind = 'error') {
-    this.banner = text ? { text, kind } : null;
+  // `action` ({label, run}): a button beside the words.
+  setBanner(text, kind = 'error', action = null) {
+    this.banner = text ? { text, kind, action } : null;
     clearTimeout(this.bannerTimer);
     this.onChange?.();
   }
@@ -213,6 +223,15 @@ export class Connection {
     if (this.state === 'closed') return;
     this.recordError(code, message);
     this.teardown();
+    // A page on 127.0.0.1 in a browser that hides loopback candidates from pages without a
+    // capture grant: the one case the grant helps (never once a connection has worked
+    // without it). Ask only when the person agrees.
+    if (CANDIDATE_CODES.has(code) && isLoopbackPage() && !captureAsked() && !this.everConnected) {
+      this.setBanner('No video connection: on this machine the browser shares its loopback address with a page only when the page may use a camera. Nephele never turns the camera on for this page or records it.', 'error',
+        { label: 'Allow and connect', run: () => this.grantAndRetry() });
+      this.setState('needs_grant');
+      return;
+    }
     if (FATAL_CODES.has(code)) {
       this.setBanner(`${describeError(code, message)}. Pick another scene or reload to try again.`);
       this.setState('error');
@@ -226,14 +245,20 @@ export class Connection {
     this.retryTimer = setTimeout(() => { if (gen === this.gen) this.start(); }, delay * 1000);
   }
 
+  /** The person agreed to the capture grant: take it (the camera is disabled at once, which
+   *  keeps the grant and turns the camera light off) and connect again. */
+  async grantAndRetry() {
+    const stream = await ensureCapturePermission({ video: true });
+    stream?.getTracks().forEach((t) => { t.enabled = false; });
+    this.backoffS = 1;
+    this.start();
+  }
+
   async start() {
     this.teardown();
     const gen = this.gen;
     this.setState('connecting');
     const stale = () => gen !== this.gen;
-
-    await ensureCapturePermission();
-    if (stale()) return;
 
     // The join checked against the server's published rules, in its words; not sent if it
     // breaks one. (Without /limits the server's own check still answers.)
@@ -303,6 +328,8 @@ export class Connection {
     switch (msg.type) {
       case 'joined':
         this.setState('negotiating');
+        // The deployment's STUN/TURN servers (TURN with this session's credential).
+        this.iceServers = Array.isArray(msg.ice_servers) ? msg.ice_servers : [];
         await this.createPeer(gen);
         break;
       case 'answer':
@@ -333,8 +360,20 @@ export class Connection {
 
   async createPeer(gen) {
     const stale = () => gen !== this.gen;
-    const pc = new RTCPeerConnection({ iceServers: [] });
+    const relay = !!this.params.relay;
+    if (relay && !this.iceServers.some((s) => [].concat(s.urls).some((u) => /^turns?:/.test(u)))) {
+      this.fail('bad_request', 'relay-only (?relay=1) needs a TURN server, and this server offers none');
+      return;
+    }
+    const pc = new RTCPeerConnection({ iceServers: this.iceServers, iceTransportPolicy: relay ? 'relay' : 'all' });
     this.pc = pc;
+    let gathered = 0;
+    pc.onicegatheringstatechange = () => {
+      if (stale() || pc.iceGatheringState !== 'complete' || gathered > 0) return;
+      // Nothing to connect from: no interface (or only loopback, hidden), or relay only and
+      // TURN unreachable or refusing the credentials.
+      this.fail('no_candidates', relay ? 'no TURN relay address: the TURN server is unreachable or refused the credentials' : 'this browser offered no network address to connect from');
+    };
     pc.addTransceiver('video', { direction: 'recvonly' });
     const dc = pc.createDataChannel('pose', { ordered: false, maxRetransmits: 0 });
     dc.binaryType = 'arraybuffer';
@@ -352,6 +391,7 @@ export class Connection {
     };
     pc.onicecandidate = (e) => {
       if (stale() || !e.candidate || !e.candidate.candidate) return; // don't send end-of-candidates
+      gathered++;
       const c = e.candidate.toJSON();
       if (this.offerSent) this.send({ type: 'ice', candidate: c });
       else this.localCandidates.push(c);
@@ -361,6 +401,7 @@ export class Connection {
       const s = pc.connectionState;
       clearTimeout(this.disconnectTimer);
       if (s === 'connected') {
+        this.everConnected = true;
         clearTimeout(this.connectTimer);
         this.backoffS = 1;
         this.setBanner(null);

@@ -34,17 +34,32 @@ export function renderStatus(conn, extra = []) {
   const $ = (id) => document.getElementById(id);
   $('state').textContent = conn.state;
   $('state').dataset.state = conn.state;
-  const banner = $('banner');
-  banner.hidden = !conn.banner;
-  if (conn.banner) {
-    banner.textContent = conn.banner.text;
-    banner.dataset.kind = conn.banner.kind;
-  }
+  showBanner($('banner'), conn.banner);
   $('hud').replaceChildren(...hudLines(conn, extra).flatMap(([k, v]) => {
     const dt = document.createElement('dt'); dt.textContent = k;
     const dd = document.createElement('dd'); dd.textContent = v;
     return [dt, dd];
   }));
+}
+
+/** Puts `banner` ({text, kind, action?} or null) into `el`, with a button for its action
+ *  (rebuilt only when the words change, so a click is never lost to a refresh). */
+export function showBanner(el, banner) {
+  el.hidden = !banner;
+  if (!banner) {
+    delete el.dataset.text;
+    return;
+  }
+  el.dataset.kind = banner.kind;
+  if (el.dataset.text === banner.text) return;
+  el.dataset.text = banner.text;
+  el.replaceChildren(document.createTextNode(banner.text));
+  if (banner.action) {
+    const button = document.createElement('button');
+    button.textContent = banner.action.label;
+    button.addEventListener('click', () => banner.action.run());
+    el.append(' ', button);
+  }
 }
 
 /** A transient note in `el`: `note(text, ms)` shows it (for `ms`, or until replaced). */

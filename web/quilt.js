@@ -21,7 +21,7 @@
 // Looking Glass display was found. None of this may throw.
 
 import { OrbitCamera, attachVideoOrbit, clamp } from './camera.js';
-import { Connection, fetchScenes, readPageOptions, warmUpCapture } from './connection.js';
+import { Connection, fetchScenes, readPageOptions } from './connection.js';
 import { orbitPose } from './pose.js';
 import { renderStatus } from './hud.js';
 
@@ -83,7 +83,6 @@ conn.exposeApi({
   get lookingGlass() { return lkgStatus; },
 });
 
-warmUpCapture();
 attachVideoOrbit($('stage'), video, camera, () => [options.width, options.height]);
 
 function render() {

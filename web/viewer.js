@@ -6,7 +6,7 @@
 // camera in camera.js, the pose message in pose.js and the HUD in hud.js.
 
 import { OrbitCamera, attachVideoOrbit } from './camera.js';
-import { Connection, fetchScenes, readPageOptions, warmUpCapture } from './connection.js';
+import { Connection, fetchScenes, readPageOptions } from './connection.js';
 import { orbitPose } from './pose.js';
 import { renderStatus } from './hud.js';
 
@@ -36,7 +36,6 @@ const conn = new Connection({
 });
 conn.exposeApi();
 
-warmUpCapture();
 attachVideoOrbit($('stage'), video, camera, () => [conn.params?.width || 640, conn.params?.height || 480]);
 
 function render() { renderStatus(conn); }

@@ -35,9 +35,9 @@
 // and xrPosesSent (poses sent from XR views).
 
 import { OrbitCamera, attachVideoOrbit, DEG, mat4Mul, mat4TranslateScale, offsetAlongX } from './camera.js';
-import { Connection, fetchScenes, readPageOptions, warmUpCapture } from './connection.js';
+import { Connection, fetchScenes, readPageOptions } from './connection.js';
 import { encodePoseViews, perspective, frustumTangents } from './pose.js';
-import { makeNote, renderStatus } from './hud.js';
+import { makeNote, renderStatus, showBanner } from './hud.js';
 
 /** XR → world: +90° about x (XR +y up → world +z up, XR −z forward → world +y). */
 export const WORLD_FROM_XR = new Float32Array([1, 0, 0, 0, 0, 0, 1, 0, 0, -1, 0, 0, 0, 0, 0, 1]);
@@ -117,7 +117,6 @@ conn.exposeApi({
   get xrPosesSent() { return xrPosesSent; },
 });
 
-warmUpCapture();
 attachVideoOrbit($('stage'), video, camera, () => [options.width, options.height]);
 
 function render() {
@@ -126,12 +125,7 @@ function render() {
     ['views', f && f.views != null ? String(f.views) : '–'],
     ['xr', xrActive() ? 'immersive' : 'flat preview'],
   ]);
-  if (pageBanner) {
-    const banner = $('banner');
-    banner.hidden = false;
-    banner.textContent = bannerText();
-    banner.dataset.kind = conn.banner ? conn.banner.kind : 'error';
-  }
+  if (pageBanner) showBanner($('banner'), { text: bannerText(), kind: conn.banner ? conn.banner.kind : 'error', action: conn.banner?.action });
 }
 
 /** The connection's banner and the page's own problem (A-Frame missing), one per line. */

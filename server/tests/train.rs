@@ -237,6 +237,16 @@ fn bench_tradeoff_prints_the_table_and_plots_the_sweep() {
         let text = std::fs::read_to_string(dir.0.join(svg)).unwrap_or_else(|e| panic!("{svg}: {e}"));
         assert!(text.starts_with("<svg") && text.contains("i-NOLF"), "{svg}");
     }
+    // `--replot` redraws both charts from the saved report (NaN figures read back from JSON
+    // nulls) and prints the same report.
+    for chart in ["bench/tradeoff_distance.png", "bench/tradeoff_psnr_ms.png"] {
+        std::fs::remove_file(dir.0.join(chart)).unwrap();
+    }
+    let o = nephele(&["bench", "tradeoff", "--replot", &dir.path("bench/tradeoff.json"), "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap(), report, "--replot prints the saved report");
+    assert_eq!(png_size(&dir.0.join("bench/tradeoff_distance.png")), (720, 460));
+    assert_eq!(png_size(&dir.0.join("bench/tradeoff_psnr_ms.png")), (720, 460));
 
     // `bench quilt` with the same teacher, at a 2×2 quilt of tiny tiles on both backends,
     // and the stereo stream: every figure finite, the table on stderr.

@@ -58,6 +58,9 @@ pub struct HubConfig {
     /// Connection limits (the hub applies `max_pending_joins_per_address`; the server the
     /// rest).
     pub limits: nephele_limits::ConnLimits,
+    /// STUN/TURN servers handed to each client in `joined` (TURN credentials minted per
+    /// session when from a secret).
+    pub ice: nephele_protocol::ice::IceConfig,
 }
 
 impl Default for HubConfig {
@@ -71,8 +74,14 @@ impl Default for HubConfig {
             client_messages_per_s: nephele_limits::CLIENT_SIGNAL_MESSAGES_PER_S,
             client_message_burst: nephele_limits::CLIENT_SIGNAL_MESSAGE_BURST,
             limits: nephele_limits::ConnLimits::default(),
+            ice: nephele_protocol::ice::IceConfig::default(),
         }
     }
+}
+
+/// Seconds since the Unix epoch (TURN REST credentials expire in wall-clock time).
+fn unix_now_s() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs())
 }
 
 /// One message for the IO edge to deliver.
@@ -617,6 +626,7 @@ impl Hub {
             Outgoing::client(
                 conn,
                 ToClient::Joined {
+                    ice_servers: self.cfg.ice.servers_for(unix_now_s(), &format!("nephele-{session}")),
                     session: session.clone(),
                     master: master_id,
                 },

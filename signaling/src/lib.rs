@@ -11,11 +11,13 @@
 /// The messages, defined once in `nephele-protocol` (shared with masters and clients).
 pub use nephele_protocol as protocol;
 
+pub mod health;
 pub mod hub;
 pub mod net;
 pub mod server;
 
 pub use hub::{ConnId, Hub, HubConfig, HubStats, MasterStats, Outgoing, SignalError};
 pub use protocol::{ErrorCode, Mode, QuiltSpec, ToClient, ToMaster, ToPeer, ToSignal};
+pub use health::Health;
 pub use net::{ConnGate, ConnPermit, serve_limited};
 pub use server::{SignalState, app, serve};

@@ -27,11 +27,26 @@ export function noErrors(name, snap, pageErrors) {
   if (snap.errors && snap.errors.length) throw new Error(`${name}: page reported errors: ${JSON.stringify(snap.errors)}`);
 }
 
-/** Opens `url` in a new page (after `initScripts`), collecting uncaught page errors. */
+/** Counts the page's camera/microphone requests (getUserMedia) in
+ *  `window.__nepheleCaptureRequests`: a page that never shows the camera must make none. */
+function countCaptureRequests() {
+  window.__nepheleCaptureRequests = 0;
+  const md = navigator.mediaDevices;
+  if (!md || !md.getUserMedia) return;
+  const real = md.getUserMedia.bind(md);
+  md.getUserMedia = (constraints) => { window.__nepheleCaptureRequests++; return real(constraints); };
+}
+
+/** How many times the page asked for the camera or microphone. */
+export const captureRequests = (page) => page.evaluate(() => window.__nepheleCaptureRequests);
+
+/** Opens `url` in a new page (after `initScripts`), collecting uncaught page errors and
+ *  counting its capture requests ([`captureRequests`]). */
 export async function openPage(context, url, initScripts = []) {
   const page = await context.newPage();
   const pageErrors = [];
   page.on('pageerror', (err) => pageErrors.push(String(err && err.message ? err.message : err)));
+  await page.addInitScript(countCaptureRequests);
   for (const script of initScripts) await page.addInitScript(script);
   await page.goto(url, { waitUntil: 'load' });
   return { page, pageErrors };

@@ -8,10 +8,11 @@
 //    Then waits for the page to have matched ≥ 20 presented frames to their poses (by RTP
 //    timestamp) and requires a pose → presented latency between 1 ms and 2 s.
 // 3. Opens ar.html and waits for ≥ 5 decoded frames there.
+// The viewer must never have asked for the camera (it shows none); the AR page must have.
 // Neither page may report errors. Prints one JSON line ({"ok":true,...} or {"ok":false,
 // "error":...}) and exits 0 or 1. The whole run is limited to 120 s.
 
-import { noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
+import { captureRequests, noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
 
 const TOTAL_TIMEOUT_MS = 120_000;
 const base = process.argv[2];
@@ -100,6 +101,8 @@ async function run(context) {
     framesDecoded: end.framesDecoded, meanAbsDiff: Number(diff.toFixed(3)), width: size.width, height: size.height,
     presentedMatched: presented.matched, presentedP50Ms: Number(presented.p50.toFixed(1)), infoP50Ms: presented.info_p50 == null ? null : Number(presented.info_p50.toFixed(1)),
   });
+  result.viewerCaptureRequests = await captureRequests(page);
+  if (result.viewerCaptureRequests !== 0) throw new Error(`the viewer asked for the camera ${result.viewerCaptureRequests} time(s)`);
   await page.close({ runBeforeUnload: false });
 
   // ── AR ──
@@ -109,6 +112,8 @@ async function run(context) {
     (s) => s.framesDecoded >= 5 || (s.errors && s.errors.length > 0) || ar.pageErrors.length > 0, 60_000);
   noErrors('ar', arSnap, ar.pageErrors);
   result.arFramesDecoded = arSnap.framesDecoded;
+  result.arCaptureRequests = await captureRequests(ar.page);
+  if (!(result.arCaptureRequests >= 1)) throw new Error('the AR page streamed without asking for its camera');
   await ar.page.close({ runBeforeUnload: false });
   return result;
 }

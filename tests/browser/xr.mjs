@@ -17,7 +17,7 @@
 import fs from 'node:fs';
 import path from 'node:path';
 import { fileURLToPath } from 'node:url';
-import { noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
+import { captureRequests, noErrors, openPage, runInChromium, sleep, waitFor } from './harness.mjs';
 
 const TOTAL_TIMEOUT_MS = 150_000;
 const HERE = path.dirname(fileURLToPath(import.meta.url));
@@ -117,6 +117,7 @@ async function run(context, result) {
   if (!shot.xrActive) throw new Error('the immersive session ended before the frame was grabbed');
   if (shot.width !== 640 || shot.height !== 320) throw new Error(`VR video is ${shot.width}x${shot.height}, not 640x320`);
   Object.assign(result, shot, { framesDecoded: end.framesDecoded, errors: end.errors });
+  const vrCaptureRequests = await captureRequests(vr.page);
   await vr.page.close({ runBeforeUnload: false });
 
   // ── Looking Glass quilt ──
@@ -126,6 +127,9 @@ async function run(context, result) {
     (s) => (s.framesDecoded >= 3 && s.session && s.session.quilt) || failed(s, quilt.pageErrors), 60_000);
   noErrors('quilt', q, quilt.pageErrors);
   result.quiltFramesDecoded = q.framesDecoded;
+  // Neither page shows a camera, so neither may ask for one.
+  result.captureRequests = { vr: vrCaptureRequests, quilt: await captureRequests(quilt.page) };
+  if (result.captureRequests.vr !== 0 || result.captureRequests.quilt !== 0) throw new Error(`a page without a camera asked for one: ${JSON.stringify(result.captureRequests)}`);
   result.quiltSession = q.session.quilt;
   await quilt.page.close({ runBeforeUnload: false });
   result.ok = true;

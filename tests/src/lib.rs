@@ -127,7 +127,7 @@ async fn start_master(
     compose: ComposeChoice,
 ) -> (LocalServer, Arc<Catalog>) {
     let catalog = Arc::new(Catalog::load(scenes, backend, RenderSettings::default()).expect("the scenes load"));
-    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig { loopback_only: true, public_ips: vec![] }, core, workers: 1, compose, bits_per_pixel, nats };
+    let cfg = MasterConfig { name: "test".into(), token: None, rtc: RtcConfig::loopback(), core, workers: 1, compose, bits_per_pixel, nats };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("a loopback port");
     (web::spawn_local(listener, Arc::clone(&catalog), cfg).await.expect("the server starts"), catalog)
 }
@@ -233,6 +233,21 @@ pub fn spawn_worker(nats: &NatsServer, id: &str, farm: &str, scenes: &[String]) 
     std::thread::spawn(move || std::io::copy(&mut out, &mut std::io::sink()));
     std::thread::spawn(move || std::io::copy(&mut err, &mut std::io::sink()));
     Reap(child)
+}
+
+/// Polls `condition` every 10 ms until it holds (`true`) or `limit` passes (`false`): how
+/// tests wait on a state the server reports (its metrics), not on a guessed sleep.
+pub async fn wait_until(limit: std::time::Duration, mut condition: impl FnMut() -> bool) -> bool {
+    let deadline = tokio::time::Instant::now() + limit;
+    loop {
+        if condition() {
+            return true;
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return false;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
 }
 
 /// Logs of the code under test on stderr when `RUST_LOG` is set (`--nocapture` shows them).

@@ -20,7 +20,7 @@ use futures_util::{SinkExt, StreamExt};
 use nephele_protocol::Mode;
 use tokio_tungstenite::tungstenite::Message;
 
-use nephele_client::{ClientNet, ClientOptions, StreamClient, replay::Trace};
+use nephele_client::{ClientNet, ClientOptions, Receive, StreamClient, replay::Trace};
 use nephele_wire::PoseMessage;
 
 /// What to throw at the server.
@@ -215,7 +215,7 @@ fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {
 }
 
 fn opts(url: &str, width: u32, height: u32, fps: u32) -> ClientOptions {
-    ClientOptions { signal_url: url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: false, quilt: None }
+    ClientOptions { signal_url: url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: Receive::Decode, quilt: None }
 }
 
 /// Runs the three phases against a fresh server started from `exe`.

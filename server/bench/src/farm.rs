@@ -22,6 +22,7 @@ use nephele_protocol::Mode;
 use serde::Serialize;
 
 use nephele_client::{
+    Receive,
     ClientOptions,
     replay::{ReplayOptions, ReplayReport, Trace, replay},
 };
@@ -154,7 +155,7 @@ async fn stream(scenes: &[String], scene: &str, nats: Option<NatsSettings>, trac
     let cfg = MasterConfig {
         name: "bench".into(),
         token: None,
-        rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
+        rtc: RtcConfig::loopback(),
         core: CoreConfig { capacity: 4, render_scale: RenderScale::Fixed(1.0), admission: Admission::Open, ..Default::default() },
         workers: 1,
         compose: ComposeChoice::Cpu,
@@ -168,7 +169,7 @@ async fn stream(scenes: &[String], scene: &str, nats: Option<NatsSettings>, trac
         tokio::time::sleep(Duration::from_millis(1500)).await;
     }
     let opts = ReplayOptions {
-        client: ClientOptions { signal_url: server.signal_url(), scene: scene.into(), mode: Mode::Viewer, width: size.0, height: size.1, fps: 25, token: None, keep_pixels: false, quilt: None },
+        client: ClientOptions { signal_url: server.signal_url(), scene: scene.into(), mode: Mode::Viewer, width: size.0, height: size.1, fps: 25, token: None, receive: Receive::Decode, quilt: None },
         anchor: None,
         quality_every: 0,
         save_dir: None,

@@ -77,22 +77,58 @@ fn draw_lines<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, labels: &Labels
 fn draw_dots<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, labels: &Labels<'_>, series: &[DotSeries], log_x: bool) -> Result<()> {
     let tx = |v: f64| if log_x { v.max(1e-12).log10() } else { v };
     let xs = series.iter().flat_map(|s| s.dots.iter().map(|d| tx(d.x)));
-    let ys = series.iter().flat_map(|s| s.dots.iter().map(|d| d.y));
-    let mut chart = frame(root, labels, range(xs), range(ys), log_x, false)?;
-    for s in series {
+    let (y_lo, y_hi) = range(series.iter().flat_map(|s| s.dots.iter().map(|d| d.y)));
+    // Room below the lowest marker for the legend (lower right: slow and poor is the
+    // emptiest corner of a speed/accuracy chart).
+    let ys = (y_lo - 0.25 * (y_hi - y_lo), y_hi);
+    let mut chart = frame(root, labels, range(xs), ys, log_x, false)?;
+    let offsets = label_offsets(&chart, series, tx);
+    for (s, offsets) in series.iter().zip(offsets) {
         let colour = rgb(s.rgb);
-        let marker = |d: &Dot| {
-            let r = i32::try_from(d.radius_px.clamp(1, 60)).unwrap_or(1);
-            EmptyElement::at((tx(d.x), d.y)) + Circle::new((0, 0), r, colour.mix(0.75).filled()) + Text::new(d.label.clone(), (r + 3, -6), (FONT, 11).into_font())
+        let marker = |(d, dy): (&Dot, i32)| {
+            let r = marker_radius(d);
+            EmptyElement::at((tx(d.x), d.y)) + Circle::new((0, 0), r, colour.mix(0.75).filled()) + Text::new(d.label.clone(), (r + 3, dy), (FONT, 11).into_font())
         };
         chart
-            .draw_series(s.dots.iter().map(marker))
+            .draw_series(s.dots.iter().zip(offsets).map(marker))
             .map_err(drawing)?
             .label(s.name.as_str())
             .legend(move |(x, y)| Circle::new((x + 8, y), 5, colour.filled()));
     }
-    // Slow and poor is the emptiest corner of a speed/accuracy chart.
     legend(&mut chart, SeriesLabelPosition::LowerRight)
+}
+
+fn marker_radius(d: &Dot) -> i32 {
+    i32::try_from(d.radius_px.clamp(1, 60)).unwrap_or(1)
+}
+
+/// Vertical pixel offsets of the markers' labels (per series, per dot): each label right of
+/// its marker, moved up or down in line steps until it overlaps no label placed before it.
+fn label_offsets<DB: DrawingBackend>(chart: &Chart<'_, DB>, series: &[DotSeries], tx: impl Fn(f64) -> f64) -> Vec<Vec<i32>> {
+    const LINE: i32 = 12;
+    const CHAR_PX: i32 = 7;
+    let mut placed: Vec<(i32, i32, i32, i32)> = Vec::new();
+    let overlaps = |a: &(i32, i32, i32, i32), b: &(i32, i32, i32, i32)| a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3;
+    series
+        .iter()
+        .map(|s| {
+            s.dots
+                .iter()
+                .map(|d| {
+                    let (px, py) = chart.backend_coord(&(tx(d.x), d.y));
+                    let left = px + marker_radius(d) + 3;
+                    let width = CHAR_PX * d.label.chars().count() as i32;
+                    let rect = |dy: i32| (left, py + dy, left + width, py + dy + LINE);
+                    let dy = (0..12)
+                        .map(|k| -6 + if k % 2 == 0 { k / 2 * LINE } else { -(k + 1) / 2 * LINE })
+                        .find(|&dy| !placed.iter().any(|p| overlaps(p, &rect(dy))))
+                        .unwrap_or(-6);
+                    placed.push(rect(dy));
+                    dy
+                })
+                .collect()
+        })
+        .collect()
 }
 
 type Chart<'a, DB> = ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>>;

@@ -19,6 +19,7 @@ use nephele_train::Trainer;
 use serde::Serialize;
 
 use nephele_client::{
+    Receive,
     ClientOptions,
     replay::{self, Percentiles, ReplayOptions, Trace},
 };
@@ -211,7 +212,7 @@ fn stream_stereo(args: &QuiltBenchArgs) -> Result<StereoRow> {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
             let server = nephele_master::web::spawn_local(listener, catalog, cfg).await?;
             let opts = ReplayOptions {
-                client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode, width, height, fps: 25, token: None, keep_pixels: false, quilt: None },
+                client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode, width, height, fps: 25, token: None, receive: Receive::Decode, quilt: None },
                 anchor: None,
                 quality_every: 0,
                 save_dir: None,

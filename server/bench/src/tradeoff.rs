@@ -37,7 +37,7 @@
 
 use std::{
     fmt::Write as _,
-    path::PathBuf,
+    path::{Path, PathBuf},
     sync::Arc,
     time::Instant,
 };
@@ -45,7 +45,7 @@ use std::{
 use anyhow::{Context, Result, bail};
 use glam::{DVec3, Vec3};
 use indicatif::ProgressBar;
-use serde::Serialize;
+use serde::{Deserialize, Deserializer, Serialize};
 
 use nephele_renderer::{
     Asset, Backend, FastCpuBackend, Intrinsics, RenderSettings, RenderStats, View, ViewRequest,
@@ -67,10 +67,11 @@ use crate::plot::{Dot, DotSeries, Labels, Series, line_chart, scatter_chart};
 /// i-NGP checkpoint: trains the i-NOLF variants, scores held-out views, times frames.
 #[derive(clap::Args, Debug, Clone)]
 pub struct TradeoffArgs {
-    dataset: PathBuf,
+    #[arg(required_unless_present = "replot")]
+    dataset: Option<PathBuf>,
     /// The teacher: an i-NGP checkpoint (e.g. DIR.train/ngp.ckpt from `nephele train`).
-    #[arg(long)]
-    teacher: PathBuf,
+    #[arg(long, required_unless_present = "replot")]
+    teacher: Option<PathBuf>,
     #[arg(long, default_value_t = 2)]
     downscale: u32,
     /// Held-out views as in `train --holdout-every` (needed without a test split).
@@ -107,11 +108,23 @@ pub struct TradeoffArgs {
     /// written either way).
     #[arg(long)]
     pub json: bool,
+    /// Redraw the charts of an earlier run from its `tradeoff.json` (into its folder) and
+    /// print its table, without training or timing anything.
+    #[arg(long, value_name = "TRADEOFF_JSON")]
+    pub replot: Option<PathBuf>,
 }
 
 /// Runs `nephele bench tradeoff`.
 pub fn run_args(args: TradeoffArgs) -> Result<()> {
-    let TradeoffArgs { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu, taus, max_hits, json } = args;
+    let TradeoffArgs { dataset, teacher, downscale, holdout_every, nolf_steps, psh, size, views, distances, out, gpu, taus, max_hits, json, replot } = args;
+    if let Some(path) = replot {
+        let text = std::fs::read_to_string(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        let mut report: Report = serde_json::from_str(&text).with_context(|| format!("{} is not a bench tradeoff report", path.display()))?;
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        draw_charts(&mut report, dir)?;
+        return crate::emit(json, &format_report(&report), &report);
+    }
+    let (Some(dataset), Some(teacher)) = (dataset, teacher) else { bail!("bench tradeoff needs a dataset and --teacher (or --replot)") };
     let size = nephele_farm::assets::parse_size(&size)?;
     let report = run(&TradeoffOptions { dataset, teacher, downscale, holdout_every, nolf_steps, psh_grids: psh, size, views, distances, out, gpu, taus, max_hits })?;
     crate::emit(json, &format_report(&report), &report)
@@ -137,7 +150,7 @@ pub struct TradeoffOptions {
 }
 
 /// i-NGP and the i-NOLF asset on the wgpu backend, one frame each at the benchmark size.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct GpuRow {
     pub adapter: String,
     pub ngp_ms: f64,
@@ -145,24 +158,44 @@ pub struct GpuRow {
     pub nolf_march_ms: f64,
 }
 
-#[derive(Debug, Clone, Serialize)]
+/// JSON has no NaN (`serde_json` writes `null`): read `null` back as NaN.
+fn nan_if_null<'de, D: Deserializer<'de>>(d: D) -> std::result::Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// The chart series a row is drawn in.
+pub const SERIES_NGP: &str = "i-NGP";
+pub const SERIES_ONE_HIT: &str = "i-NOLF, one hit";
+pub const SERIES_MULTI_HIT: &str = "i-NOLF, multi-hit";
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Row {
     pub variant: String,
+    /// Its marker's label in the PSNR-against-ms chart.
+    pub tag: String,
+    /// Its series in that chart ([`SERIES_NGP`], …); `None`: not drawn (oracles, untimed).
+    pub series: Option<String>,
+    #[serde(deserialize_with = "nan_if_null")]
     pub psnr: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub ssim: f64,
     /// Bytes of what the variant needs stored (f32 networks as trained, f16 cubes and PSH).
     pub model_bytes: u64,
     /// Bytes the CPU renderer holds beyond that (f32 copies of f16 data, occupancy grid,
     /// transposed weights).
     pub runtime_extra_bytes: u64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub march_ms: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub total_ms: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub fps: f64,
     /// Network queries per hit ray (1 without multi-hit; NaN where not counted).
+    #[serde(deserialize_with = "nan_if_null")]
     pub queries_per_hit: f64,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SweepPoint {
     pub distance: f64,
     pub coverage: f64,
@@ -170,7 +203,7 @@ pub struct SweepPoint {
     pub nolf_ms: f64,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Report {
     pub dataset: String,
     pub eval_views: usize,
@@ -418,6 +451,8 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
             let n = test.images.len() as f64;
             Row {
                 variant: name.clone(),
+                tag: String::new(),
+                series: None,
                 psnr: p / n,
                 ssim: s / n,
                 model_bytes: ngp_model,
@@ -493,8 +528,16 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
                 (f.march_ms, ms, 1.0)
             }
         };
+        let multi = matches!(&v.shading, Shading::Asset(a) if !a.march.hits.one_hit());
+        let series = match v.shading {
+            Shading::Ngp => SERIES_NGP,
+            _ if multi => SERIES_MULTI_HIT,
+            _ => SERIES_ONE_HIT,
+        };
         rows.push(Row {
             variant: v.name.clone(),
+            tag: v.tag.clone(),
+            series: Some(series.into()),
             psnr,
             ssim,
             model_bytes: v.model_bytes,
@@ -527,17 +570,6 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
         b.inc(1);
     }
     b.finish_and_clear();
-    let plot = opts.out.join("tradeoff_distance.png");
-    let title = format!("{w}x{h} frame time as the camera approaches, CPU");
-    line_chart(
-        &plot,
-        &Labels { title: &title, x: "camera distance (scene units)", y: "ms per frame (log)" },
-        &[
-            Series { name: "i-NGP".into(), rgb: [214, 39, 40], points: sweep.iter().map(|p| (p.distance, p.ngp_ms)).collect() },
-            Series { name: "i-NOLF".into(), rgb: [31, 119, 180], points: sweep.iter().map(|p| (p.distance, p.nolf_ms)).collect() },
-        ],
-        true,
-    )?;
     let gpu = if opts.gpu {
         let gpu_backend = GpuBackend::new().context("--gpu: no wgpu adapter")?;
         let adapter = gpu_backend.ctx.describe();
@@ -550,41 +582,59 @@ pub fn run(opts: &TradeoffOptions) -> Result<Report> {
     } else {
         None
     };
-    // The trade as a picture: PSNR against ms, marker size from the model's MB.
-    let trade_plot = opts.out.join("tradeoff_psnr_ms.png");
-    let dots = |pick: &dyn Fn(&Variant<'_>) -> bool| -> Vec<Dot> {
-        variants
-            .iter()
-            .zip(&rows)
-            .filter(|(v, _)| pick(v))
-            .map(|(v, r)| Dot { x: r.total_ms, y: r.psnr, radius_px: 2 + (r.model_bytes as f64 / 1048576.0).sqrt().round() as i64, label: v.tag.clone() })
-            .collect()
-    };
-    let multi = |v: &Variant<'_>| matches!(&v.shading, Shading::Asset(a) if !a.march.hits.one_hit());
-    let title = format!("held-out PSNR against {w}x{h} CPU frame time; marker size: model MB");
-    scatter_chart(
-        &trade_plot,
-        &Labels { title: &title, x: "ms per frame (log)", y: "PSNR dB" },
-        &[
-            DotSeries { name: "i-NGP".into(), rgb: [214, 39, 40], dots: dots(&|v| matches!(v.shading, Shading::Ngp)) },
-            DotSeries { name: "i-NOLF, one hit".into(), rgb: [31, 119, 180], dots: dots(&|v| !matches!(v.shading, Shading::Ngp) && !multi(v)) },
-            DotSeries { name: "i-NOLF, multi-hit".into(), rgb: [44, 160, 44], dots: dots(&multi) },
-        ],
-        true,
-    )?;
-    let report = Report {
+    let mut report = Report {
         dataset: opts.dataset.display().to_string(),
         eval_views: test.images.len(),
         eval_size: (first.width, first.height),
         bench_size: opts.size,
         rows,
         sweep,
-        plot: plot.display().to_string(),
-        trade_plot: trade_plot.display().to_string(),
+        plot: String::new(),
+        trade_plot: String::new(),
         gpu,
     };
+    draw_charts(&mut report, &opts.out)?;
     std::fs::write(opts.out.join("tradeoff.json"), serde_json::to_string_pretty(&report)?)?;
     Ok(report)
+}
+
+/// Draws the distance sweep and the PSNR-against-ms trade (marker size from the model's MB)
+/// into `dir` and records their paths in `r`.
+fn draw_charts(r: &mut Report, dir: &Path) -> Result<()> {
+    let (w, h) = r.bench_size;
+    let plot = dir.join("tradeoff_distance.png");
+    let title = format!("{w}x{h} frame time as the camera approaches, CPU");
+    line_chart(
+        &plot,
+        &Labels { title: &title, x: "camera distance (scene units)", y: "ms per frame (log)" },
+        &[
+            Series { name: "i-NGP".into(), rgb: [214, 39, 40], points: r.sweep.iter().map(|p| (p.distance, p.ngp_ms)).collect() },
+            Series { name: "i-NOLF".into(), rgb: [31, 119, 180], points: r.sweep.iter().map(|p| (p.distance, p.nolf_ms)).collect() },
+        ],
+        true,
+    )?;
+    let trade_plot = dir.join("tradeoff_psnr_ms.png");
+    let dots = |series: &str| -> Vec<Dot> {
+        r.rows
+            .iter()
+            .filter(|row| row.series.as_deref() == Some(series) && row.total_ms.is_finite() && row.psnr.is_finite())
+            .map(|row| Dot { x: row.total_ms, y: row.psnr, radius_px: 2 + (row.model_bytes as f64 / 1048576.0).sqrt().round() as i64, label: row.tag.clone() })
+            .collect()
+    };
+    let title = format!("held-out PSNR against {w}x{h} CPU frame time; marker size: model MB");
+    scatter_chart(
+        &trade_plot,
+        &Labels { title: &title, x: "ms per frame (log)", y: "PSNR dB" },
+        &[
+            DotSeries { name: SERIES_NGP.into(), rgb: [214, 39, 40], dots: dots(SERIES_NGP) },
+            DotSeries { name: SERIES_ONE_HIT.into(), rgb: [31, 119, 180], dots: dots(SERIES_ONE_HIT) },
+            DotSeries { name: SERIES_MULTI_HIT.into(), rgb: [44, 160, 44], dots: dots(SERIES_MULTI_HIT) },
+        ],
+        true,
+    )?;
+    r.plot = plot.display().to_string();
+    r.trade_plot = trade_plot.display().to_string();
+    Ok(())
 }
 
 pub fn format_report(r: &Report) -> String {

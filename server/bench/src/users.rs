@@ -1,8 +1,10 @@
 //! `nephele bench users`: many users on one server (NEPHELE §6.2). For each backend, mode
 //! (`batched`: users of a scene share one render task per round; `per_user`: every user
 //! frame is its own task) and user count, a fresh in-process server and that many real
-//! replay clients (WebRTC, OpenH264 decode), each replaying the orbit from its own phase so
-//! that no two ask for the same view. Reports per-user achieved FPS, pose→decoded latency,
+//! replay clients (WebRTC; the first `--decoders` decode with OpenH264, the others
+//! reassemble access units and read their pose SEI, so that the load generator does not take
+//! the server's cores), each replaying the orbit from its own phase so that no two ask for
+//! the same view. Reports per-user achieved FPS, pose→decoded latency,
 //! render ms per user-frame, user-frames rendered per second and how many users are held at
 //! their FPS; then one run where two clients share a view, to show history hits.
 //!
@@ -19,6 +21,7 @@ use nephele_protocol::Mode;
 use serde::Serialize;
 
 use nephele_client::{
+    Receive,
     ClientOptions,
     replay::{ReplayOptions, ReplayReport, Trace, replay},
 };
@@ -57,6 +60,11 @@ pub struct UsersArgs {
     /// Render-time target of `--render-scale auto`, ms.
     #[arg(long, default_value_t = 30.0)]
     frame_budget_ms: f64,
+    /// Clients that decode H.264 (the first N of each run); the others reassemble every
+    /// access unit and read its pose SEI without decoding, so that the bench's own clients
+    /// leave this machine's cores to the server they measure.
+    #[arg(long, default_value_t = 1)]
+    decoders: usize,
     /// Skip the shared-view run.
     #[arg(long)]
     no_shared: bool,
@@ -122,6 +130,8 @@ pub struct UsersReport {
     pub height: u32,
     pub fps: u32,
     pub render_scale: String,
+    /// Clients per run that decode (the rest count access units).
+    pub decoders: usize,
     pub backends: BTreeMap<String, BackendReport>,
     /// Two clients replaying the same orbit from the same phase (batched, first backend).
     pub shared_view: Option<UsersRun>,
@@ -174,7 +184,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
             for &n in &args.users {
                 eprintln!("{name} {mode}: {n} users at {width}x{height}, {} fps ...", args.fps);
                 let phases: Vec<usize> = (0..n).map(|k| k * one_turn.len() / n.max(1)).collect();
-                let reports = rt.block_on(session_run(&catalog, batching, scale, &trace, &phases, width, height, args.fps, false))?;
+                let reports = rt.block_on(session_run(&catalog, batching, scale, &trace, &phases, (width, height), args.fps, args.decoders, false))?;
                 runs.push(summarise(&name, mode, args.fps, &reports));
             }
             let last = runs.last().context("no user counts given")?.clone();
@@ -182,7 +192,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
         }
         if !args.no_shared && shared_view.is_none() {
             eprintln!("{name} batched: 2 users sharing one view ...");
-            let reports = rt.block_on(session_run(&catalog, true, scale, &trace, &[0, 0], width, height, args.fps, true))?;
+            let reports = rt.block_on(session_run(&catalog, true, scale, &trace, &[0, 0], (width, height), args.fps, args.decoders, true))?;
             shared_view = Some(summarise(&name, "shared_view", args.fps, &reports));
         }
         if !args.no_overload && overload.is_none() {
@@ -190,7 +200,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
             let held = modes[0].runs.iter().filter(|r| r.fps_min >= 0.9 * f64::from(args.fps)).map(|r| r.users).max().unwrap_or(1);
             let offered = 2 * held.max(1);
             eprintln!("{name} batched, admission by load: {offered} users join one per second ...");
-            let (reports, refusals) = rt.block_on(overload_run(&catalog, scale, &trace, offered, width, height, args.fps))?;
+            let (reports, refusals) = rt.block_on(overload_run(&catalog, scale, &trace, offered, (width, height), args.fps, args.decoders))?;
             let admitted_run = (!reports.is_empty()).then(|| summarise(&name, "admitted", args.fps, &reports));
             let min_fps_share = reports.iter().map(|r| r.fps / f64::from(args.fps)).fold(f64::INFINITY, f64::min);
             let max_gap_periods = reports.iter().map(|r| r.frame_gap_ms.max * f64::from(args.fps) / 1e3).fold(0.0, f64::max);
@@ -202,7 +212,7 @@ pub fn run(args: UsersArgs) -> Result<()> {
         let pixel_speedup = batched.user_megapixels_per_s / per_user.user_megapixels_per_s.max(1e-9);
         backends.insert(name, BackendReport { batched, per_user, speedup, pixel_speedup });
     }
-    let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale.clone(), backends, shared_view, overload };
+    let report = UsersReport { asset: args.asset.clone(), width, height, fps: args.fps, render_scale: args.render_scale.clone(), decoders: args.decoders, backends, shared_view, overload };
     crate::emit(args.json, &format_report(&report), &report)?;
     let wrong: usize = report.backends.values().flat_map(|b| b.batched.runs.iter().chain(&b.per_user.runs)).map(|r| r.frames_wrong_pose).sum();
     if wrong > 0 {
@@ -226,7 +236,8 @@ pub fn hub_for(users: usize) -> nephele_signaling::HubConfig {
 }
 
 /// One server, `phases.len()` clients replaying `trace` from those pose offsets, at once;
-/// `lockstep`: every client sends its first pose at the same moment.
+/// `lockstep`: every client sends its first pose at the same moment; the first `decoders`
+/// clients decode.
 #[allow(clippy::too_many_arguments)]
 async fn session_run(
     catalog: &Arc<Catalog>,
@@ -234,9 +245,9 @@ async fn session_run(
     scale: RenderScale,
     trace: &Trace,
     phases: &[usize],
-    width: u32,
-    height: u32,
+    (width, height): (u32, u32),
     fps: u32,
+    decoders: usize,
     lockstep: bool,
 ) -> Result<Vec<ReplayReport>> {
     let start_at = lockstep.then(|| std::time::Instant::now() + Duration::from_secs(4));
@@ -244,12 +255,12 @@ async fn session_run(
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let server = web::spawn_local_with(listener, Arc::clone(catalog), cfg, hub_for(phases.len())).await?;
     let mut tasks = Vec::new();
-    for &phase in phases {
+    for (k, &phase) in phases.iter().enumerate() {
         let mut t = trace.clone();
         let len = t.poses.len().max(1);
         t.poses.rotate_left(phase % len);
         let opts = ReplayOptions {
-            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: false, quilt: None },
+            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: receive_of(k, decoders), quilt: None },
             anchor: None,
             quality_every: 0,
             save_dir: None,
@@ -273,9 +284,9 @@ async fn overload_run(
     scale: RenderScale,
     trace: &Trace,
     offered: usize,
-    width: u32,
-    height: u32,
+    (width, height): (u32, u32),
     fps: u32,
+    decoders: usize,
 ) -> Result<(Vec<ReplayReport>, Vec<String>)> {
     let cfg = MasterConfig::loopback("bench", CoreConfig { capacity: offered as u32, render_scale: scale, batching: true, admission: Admission::Load, ..Default::default() });
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
@@ -289,7 +300,7 @@ async fn overload_run(
         let extra = t.poses[..len.min(50 * (offered - k))].to_vec();
         t.poses.extend(extra);
         let opts = ReplayOptions {
-            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, keep_pixels: false, quilt: None },
+            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: receive_of(k, decoders), quilt: None },
             anchor: None,
             quality_every: 0,
             save_dir: None,
@@ -306,6 +317,11 @@ async fn overload_run(
         }
     }
     Ok((admitted, refused))
+}
+
+/// Client `k` decodes when it is one of the first `decoders`.
+fn receive_of(k: usize, decoders: usize) -> Receive {
+    if k < decoders { Receive::Decode } else { Receive::AccessUnits }
 }
 
 fn summarise(backend: &str, mode: &str, fps: u32, reports: &[ReplayReport]) -> UsersRun {
@@ -338,13 +354,14 @@ pub fn format_report(r: &UsersReport) -> String {
     let mut out = String::new();
     let _ = writeln!(
         out,
-        "asset {}, {}x{}, target {} fps, render scale {}, admission open; held = at least {:.0}% of the target FPS\n",
+        "asset {}, {}x{}, target {} fps, render scale {}, admission open; held = at least {:.0}% of the target FPS; {} client(s) per run decode, the rest count access units\n",
         r.asset,
         r.width,
         r.height,
         r.fps,
         r.render_scale,
-        100.0 * HELD_SHARE
+        100.0 * HELD_SHARE,
+        r.decoders
     );
     let _ = writeln!(out, "| backend | mode | users | held | user-frames/s | rendered Mpx/s | fps min / mean | p50 / p99 ms | render ms per user-frame | views per task | render scale | max gap ms |");
     let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");

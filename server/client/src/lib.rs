@@ -25,7 +25,7 @@ use webrtc::{
     data_channel::{RTCDataChannel, data_channel_init::RTCDataChannelInit, data_channel_message::DataChannelMessage},
     api::setting_engine::SettingEngine,
     ice_transport::ice_candidate::RTCIceCandidateInit,
-    peer_connection::{RTCPeerConnection, configuration::RTCConfiguration, sdp::session_description::RTCSessionDescription},
+    peer_connection::{RTCPeerConnection, sdp::session_description::RTCSessionDescription},
     rtcp::payload_feedbacks::picture_loss_indication::PictureLossIndication,
     rtp_transceiver::{
         RTCRtpTransceiverInit, rtp_codec::RTPCodecType, rtp_transceiver_direction::RTCRtpTransceiverDirection,
@@ -55,6 +55,18 @@ pub struct ClientNet {
     /// The signaling websocket's source address (tests and `bench abuse`: clients from
     /// different loopback addresses, 127.0.0.0/8); `None`: the system's choice.
     pub source_ip: Option<std::net::IpAddr>,
+    /// Gather TURN relay candidates only (a browser's `iceTransportPolicy: "relay"`), using
+    /// the ICE servers signaling hands out in `joined`.
+    pub relay_only: bool,
+}
+
+/// One end of an ICE candidate pair: its type (`host`, `srflx`, `prflx`, `relay`) and
+/// address.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PairEnd {
+    pub kind: String,
+    pub ip: String,
+    pub port: u16,
 }
 
 /// What to ask signaling for.
@@ -68,25 +80,38 @@ pub struct ClientOptions {
     pub height: u32,
     pub fps: u32,
     pub token: Option<String>,
-    /// Keep decoded pixels (PSNR, saving frames); latency-only runs can skip the copy.
-    pub keep_pixels: bool,
+    /// How much of each picture to take in.
+    pub receive: Receive,
     /// Mode `quilt`: the layout to ask for (`None`: the master's default, 5×9 over 40°).
     pub quilt: Option<nephele_protocol::QuiltSpec>,
 }
 
-/// One decoded video frame.
+/// How far the client takes each access unit it reassembles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Receive {
+    /// Decode and keep the RGBA pixels (PSNR, saved frames).
+    Pixels,
+    /// Decode, drop the pixels: what a viewer pays, without this client's copy.
+    Decode,
+    /// Count complete access units and read their SEI, no decode: a load generator whose
+    /// own decoding would take the cores from the server it measures (benches with many
+    /// clients on one machine). Its frames have `decoded_at == arrived_at`.
+    AccessUnits,
+}
+
+/// One received video frame (decoded unless [`Receive::AccessUnits`]).
 #[derive(Debug, Clone)]
 pub struct ReceivedFrame {
     /// Pose sequence from the access unit's SEI, if it had one.
     pub pose_seq: Option<u64>,
     /// When the last RTP packet of the access unit arrived.
     pub arrived_at: Instant,
-    /// When decoding finished.
+    /// When decoding finished (with [`Receive::AccessUnits`]: when it arrived).
     pub decoded_at: Instant,
     pub bytes: usize,
     pub width: u32,
     pub height: u32,
-    /// RGBA8, `width`×`height` (empty unless `keep_pixels`).
+    /// RGBA8, `width`×`height` (empty unless [`Receive::Pixels`]).
     pub rgba: Vec<u8>,
     /// The access unit was an IDR.
     pub idr: bool,
@@ -142,19 +167,19 @@ impl StreamClient {
         let spec = JoinSpec { scene: opts.scene.clone(), mode: opts.mode, width: opts.width, height: opts.height, fps: opts.fps, quilt: opts.quilt };
         let join = ToSignal::Join { spec, token: opts.token.clone() };
         ws_tx.send(Message::text(serde_json::to_string(&join)?)).await?;
-        match next_signal(&mut ws_rx).await? {
-            ToClient::Joined { .. } => {}
+        let ice_servers = match next_signal(&mut ws_rx).await? {
+            ToClient::Joined { ice_servers, .. } => ice_servers,
             ToClient::Error { code, message } => bail!("signaling refused the join ({code:?}): {message}"),
             other => bail!("unexpected signaling message before joined: {other:?}"),
-        }
+        };
 
         let tweak = |s: &mut SettingEngine| {
             if let Some(f) = &net.settings {
                 f(s);
             }
         };
-        let api = build_api_with(&RtcConfig { loopback_only: !net.any_interface, public_ips: vec![] }, &tweak)?;
-        let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
+        let api = build_api_with(&RtcConfig { loopback_only: !net.any_interface, ..RtcConfig::default() }, &tweak)?;
+        let pc = Arc::new(api.peer_connection(&ice_servers, net.relay_only).await?);
         pc.add_transceiver_from_kind(
             RTPCodecType::Video,
             Some(RTCRtpTransceiverInit { direction: RTCRtpTransceiverDirection::Recvonly, send_encodings: vec![] }),
@@ -165,17 +190,28 @@ impl StreamClient {
 
         let (ws_out, mut ws_out_rx) = mpsc::unbounded_channel::<ToSignal>();
         let ice_tx = ws_out.clone();
+        // How many candidates gathering found, reported when it completes: none at all
+        // (relay only, and TURN unreachable or refusing the credentials) cannot connect.
+        let (gathered_tx, mut gathered) = mpsc::unbounded_channel::<usize>();
+        let found = Arc::new(AtomicU64::new(0));
         pc.on_ice_candidate(Box::new(move |c| {
-            let tx = ice_tx.clone();
+            let (tx, gathered_tx, found) = (ice_tx.clone(), gathered_tx.clone(), Arc::clone(&found));
             Box::pin(async move {
-                if let Some(Ok(init)) = c.map(|c| c.to_json()) {
-                    let _ = tx.send(ToSignal::Ice { session: None, candidate: candidate_json(&init) });
+                match c.map(|c| c.to_json()) {
+                    Some(Ok(init)) => {
+                        found.fetch_add(1, Ordering::Relaxed);
+                        let _ = tx.send(ToSignal::Ice { session: None, candidate: candidate_json(&init) });
+                    }
+                    Some(Err(_)) => {}
+                    None => {
+                        let _ = gathered_tx.send(found.load(Ordering::Relaxed) as usize);
+                    }
                 }
             })
         }));
 
         let (frame_tx, frames) = mpsc::unbounded_channel();
-        let keep_pixels = opts.keep_pixels;
+        let receive = opts.receive;
         let (w, h) = (opts.width, opts.height);
         let video_ssrc = Arc::new(AtomicU32::new(0));
         let ssrc_slot = Arc::clone(&video_ssrc);
@@ -190,7 +226,7 @@ impl StreamClient {
                 let (au_tx, au_rx) = std::sync::mpsc::channel::<Unit>();
                 let (fail_tx, fail_rx) = mpsc::unbounded_channel::<()>();
                 let decode_stats = Arc::clone(&stats);
-                std::thread::spawn(move || decode_loop(au_rx, frame_tx, fail_tx, decode_stats, keep_pixels, w, h));
+                std::thread::spawn(move || decode_loop(au_rx, frame_tx, fail_tx, decode_stats, receive, w, h));
                 // One task only reads (a read is not cancelled half-way), the other orders.
                 let (packet_tx, packet_rx) = mpsc::unbounded_channel();
                 tokio::spawn(async move {
@@ -281,6 +317,13 @@ impl StreamClient {
                     Some(_) => continue,
                     None => bail!("signaling closed"),
                 },
+                Some(0) = gathered.recv() => {
+                    let servers: Vec<&str> = ice_servers.iter().flat_map(|s| s.urls.iter().map(String::as_str)).collect();
+                    if net.relay_only {
+                        bail!("no TURN relay candidate was gathered: the TURN server ({}) is unreachable or refused the credentials", servers.join(", "));
+                    }
+                    bail!("no ICE candidate was gathered (no usable network interface)");
+                }
             }
         };
         Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc, stats, last_paced: std::sync::Mutex::new(None), poses_held_back: AtomicU64::new(0), closed: AtomicBool::new(false) })
@@ -347,6 +390,25 @@ impl StreamClient {
     /// Bytes sent on the pose channel and not acknowledged yet (SCTP's buffered amount).
     pub async fn pose_backlog(&self) -> usize {
         self.channel.buffered_amount().await
+    }
+
+    /// The ICE candidate pair carrying the stream (local end, remote end), once ICE has
+    /// nominated one: the candidates' types say whether it is direct or relayed.
+    pub async fn selected_pair(&self) -> Option<(PairEnd, PairEnd)> {
+        use webrtc::stats::StatsReportType as S;
+        let reports = self.pc.get_stats().await.reports;
+        let end = |id: &str| match reports.get(id) {
+            Some(S::LocalCandidate(c) | S::RemoteCandidate(c)) => Some(PairEnd { kind: c.candidate_type.to_string(), ip: c.ip.clone(), port: c.port }),
+            _ => None,
+        };
+        reports
+            .values()
+            .filter_map(|r| match r {
+                S::CandidatePair(p) if p.nominated => Some(p),
+                _ => None,
+            })
+            .max_by_key(|p| p.bytes_received)
+            .and_then(|p| Some((end(&p.local_candidate_id)?, end(&p.remote_candidate_id)?)))
     }
 
     /// What the receive path has counted so far (packets late, lost, IDRs, PLIs sent, ...).
@@ -459,10 +521,20 @@ fn decode_loop(
     out: mpsc::UnboundedSender<ReceivedFrame>,
     failures: mpsc::UnboundedSender<()>,
     stats: Arc<ReceiveStats>,
-    keep_pixels: bool,
+    receive: Receive,
     width: u32,
     height: u32,
 ) {
+    if receive == Receive::AccessUnits {
+        for Unit { annex_b: au, arrived_at, idr } in aus {
+            let frame = ReceivedFrame { pose_seq: parse_pose_seq(&au), arrived_at, decoded_at: arrived_at, bytes: au.len(), width, height, rgba: Vec::new(), idr };
+            if out.send(frame).is_err() {
+                return;
+            }
+        }
+        return;
+    }
+    let keep_pixels = receive == Receive::Pixels;
     let mut decoder = match Decoder::new() {
         Ok(d) => d,
         Err(e) => {

@@ -710,7 +710,8 @@ impl MasterCore {
             self.outputs.push_back(Output::Heartbeat { sessions: self.users.len() as u32, free_rays_per_s: free, saturated });
             self.next_heartbeat = Some(now + self.cfg.heartbeat_every);
         }
-        self.events.push(CoreEvent::Queue { depth: self.queue.len(), in_flight: self.in_flight.len(), farm_rays_per_s: self.farm_rays_per_s() });
+        let rays_in_flight = self.in_flight.values().map(|t| t.rays).sum();
+        self.events.push(CoreEvent::Queue { depth: self.queue.len(), in_flight: self.in_flight.len(), rays_in_flight, farm_rays_per_s: self.farm_rays_per_s() });
     }
 
     /// Rays per second left after every admitted user at its lowest scale.

@@ -73,7 +73,7 @@ impl MasterConfig {
         Self {
             name: name.into(),
             token: None,
-            rtc: RtcConfig { loopback_only: true, public_ips: vec![] },
+            rtc: RtcConfig::loopback(),
             core,
             workers: 1,
             compose: ComposeChoice::Cpu,
@@ -295,7 +295,7 @@ fn execute(
     out: Output,
     sessions: &mut HashMap<String, SessionEdge>,
     workers: &Farm,
-    api: &Arc<webrtc::api::API>,
+    api: &Arc<nephele_rtc::RtcApi>,
     to_signal: &mpsc::UnboundedSender<ToSignal>,
     events: &mpsc::UnboundedSender<Event>,
     compositor: &Arc<Compositor>,
@@ -450,7 +450,7 @@ fn assemble<'a>(job: &'a EncodeJob, compositor: &Compositor) -> Result<std::borr
 /// and reports what happens. A panic inside ends this session only.
 async fn peer_task(
     session: String,
-    api: Arc<webrtc::api::API>,
+    api: Arc<nephele_rtc::RtcApi>,
     commands: mpsc::UnboundedReceiver<PeerCommand>,
     events: mpsc::UnboundedSender<Event>,
     to_signal: mpsc::UnboundedSender<ToSignal>,
@@ -464,13 +464,13 @@ async fn peer_task(
 
 async fn peer_loop(
     session: String,
-    api: Arc<webrtc::api::API>,
+    api: Arc<nephele_rtc::RtcApi>,
     mut commands: mpsc::UnboundedReceiver<PeerCommand>,
     events: mpsc::UnboundedSender<Event>,
     to_signal: mpsc::UnboundedSender<ToSignal>,
 ) {
     let (ev_tx, mut peer_events) = mpsc::channel::<PeerEvent>(256);
-    let peer = match WebrtcPeer::new(&api, ev_tx).await {
+    let peer = match WebrtcPeer::new(&api, &session, ev_tx).await {
         Ok(p) => p,
         Err(e) => {
             let _ = events.send(Event::Peer(session, PeerEvent::Closed(format!("cannot create a peer connection: {e:#}"))));

@@ -46,6 +46,7 @@ pub struct MasterMetrics {
     pub refusals: Family<ReasonLabel, Counter>,
     pub task_queue_depth: Gauge,
     pub tasks_in_flight: Gauge,
+    pub rays_in_flight: Gauge,
     pub tasks_cancelled: Counter,
     pub batch_views: Histogram,
     pub batch_users: Histogram,
@@ -79,6 +80,7 @@ impl MasterMetrics {
             refusals: Family::default(),
             task_queue_depth: Gauge::default(),
             tasks_in_flight: Gauge::default(),
+            rays_in_flight: Gauge::default(),
             tasks_cancelled: Counter::default(),
             batch_views: Histogram::new(exponential_buckets(1.0, 2.0, 8)),
             batch_users: Histogram::new(exponential_buckets(1.0, 2.0, 8)),
@@ -102,6 +104,7 @@ impl MasterMetrics {
         registry.register("refusals", "Joins refused, by reason", m.refusals.clone());
         registry.register("task_queue_depth", "Render tasks formed and waiting for a worker", m.task_queue_depth.clone());
         registry.register("tasks_in_flight", "Render tasks on workers", m.tasks_in_flight.clone());
+        registry.register("rays_in_flight", "Primary rays of the render tasks on workers", m.rays_in_flight.clone());
         registry.register("tasks_cancelled", "Render tasks dropped because every user of them left", m.tasks_cancelled.clone());
         registry.register("batch_views", "Views per render task", m.batch_views.clone());
         registry.register("batch_users", "Users per render task", m.batch_users.clone());
@@ -148,9 +151,10 @@ impl MasterMetrics {
             CoreEvent::Starved => {
                 self.starvation_events.inc();
             }
-            CoreEvent::Queue { depth, in_flight, farm_rays_per_s } => {
+            CoreEvent::Queue { depth, in_flight, rays_in_flight, farm_rays_per_s } => {
                 self.task_queue_depth.set(i64::try_from(*depth).unwrap_or(i64::MAX));
                 self.tasks_in_flight.set(i64::try_from(*in_flight).unwrap_or(i64::MAX));
+                self.rays_in_flight.set(i64::try_from(*rays_in_flight).unwrap_or(i64::MAX));
                 self.farm_rays_per_s.set(*farm_rays_per_s);
             }
             CoreEvent::TaskFormed { views, users } => {

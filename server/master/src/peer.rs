@@ -15,19 +15,18 @@ use bytes::Bytes;
 use serde_json::Value;
 use tokio::sync::{Mutex, mpsc};
 use webrtc::{
-    api::API,
     data_channel::{RTCDataChannel, data_channel_message::DataChannelMessage},
     ice_transport::ice_candidate::RTCIceCandidateInit,
     media::Sample,
     peer_connection::{
-        RTCPeerConnection, configuration::RTCConfiguration, peer_connection_state::RTCPeerConnectionState,
+        RTCPeerConnection, peer_connection_state::RTCPeerConnectionState,
         sdp::session_description::RTCSessionDescription,
     },
     rtcp::payload_feedbacks::{full_intra_request::FullIntraRequest, picture_loss_indication::PictureLossIndication},
     track::track_local::{TrackLocal, track_local_static_sample::TrackLocalStaticSample},
 };
 
-use nephele_rtc::{candidate_json, h264_codec};
+use nephele_rtc::{RtcApi, candidate_json, h264_codec};
 
 /// Largest pose-channel message we look at; anything longer is refused unread.
 pub const MAX_CHANNEL_MESSAGE: usize = nephele_limits::MAX_POSE_MESSAGE_BYTES;
@@ -74,9 +73,10 @@ pub struct WebrtcPeer {
 }
 
 impl WebrtcPeer {
-    /// A new peer connection with its H.264 track; events go to `events`.
-    pub async fn new(api: &API, events: mpsc::Sender<PeerEvent>) -> Result<Self> {
-        let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await.context("creating a peer connection")?);
+    /// A new peer connection for `session` with its H.264 track, gathering through the
+    /// process's ICE servers; events go to `events`.
+    pub async fn new(rtc: &RtcApi, session: &str, events: mpsc::Sender<PeerEvent>) -> Result<Self> {
+        let pc = Arc::new(rtc.peer_connection(&rtc.ice_servers_for(&format!("nephele-master-{session}")), false).await?);
         let track = Arc::new(TrackLocalStaticSample::new(h264_codec().capability, "video".into(), "nephele".into()));
         let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await.context("adding the video track")?;
 

@@ -1,20 +1,39 @@
 //! The WebRTC conventions both ends of a stream share: the one video format (H.264
 //! constrained baseline `42e01f`, packetization mode 1, NACK/PLI/FIR feedback), how a
-//! `webrtc` API object is built with it, how a local ICE candidate is written as the
-//! `RTCIceCandidateInit` JSON that signaling relays. The master's peer and the headless client
-//! both build on this crate and nothing else of each other's.
+//! `webrtc` API object is built with it and with the process's network settings (which
+//! interfaces, which UDP ports, STUN/TURN servers), how a local ICE candidate is written as
+//! the `RTCIceCandidateInit` JSON that signaling relays. The master's peer and the headless
+//! client both build on this crate and nothing else of each other's.
+//!
+//! UDP: by default each peer connection takes its own ephemeral port (`UdpPorts::Any`); a
+//! range keeps them inside a firewall's opening; `UdpPorts::Mux` carries every session over
+//! one socket (ICE tells sessions apart by their username fragment), so a firewall, cloud
+//! security group or Kubernetes Service opens one UDP port. `webrtc` 0.17 has no ICE-TCP
+//! (its gatherer leaves TCP candidates as a to-do): a client whose network allows only TCP
+//! reaches the server through TURN over TCP or TLS (`turn:…?transport=tcp`, `turns:`).
 
-use std::{net::IpAddr, sync::Arc, time::Duration};
+use std::{
+    net::{IpAddr, Ipv4Addr, SocketAddr},
+    sync::Arc,
+    time::Duration,
+};
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
+pub use nephele_protocol::ice::{IceConfig, IceServer};
 use serde_json::Value;
 use webrtc::{
     api::{
         API, APIBuilder, interceptor_registry::register_default_interceptors, media_engine::MediaEngine,
         setting_engine::SettingEngine,
     },
-    ice_transport::ice_candidate::RTCIceCandidateInit,
+    ice::{
+        network_type::NetworkType,
+        udp_mux::{UDPMuxDefault, UDPMuxParams},
+        udp_network::{EphemeralUDP, UDPNetwork},
+    },
+    ice_transport::{ice_candidate::RTCIceCandidateInit, ice_server::RTCIceServer},
     interceptor::registry::Registry,
+    peer_connection::{RTCPeerConnection, configuration::RTCConfiguration, policy::ice_transport_policy::RTCIceTransportPolicy},
     rtp_transceiver::{
         RTCPFeedback,
         rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType},
@@ -31,6 +50,78 @@ pub struct RtcConfig {
     pub loopback_only: bool,
     /// Public addresses to advertise instead of the host's (server behind 1:1 NAT).
     pub public_ips: Vec<String>,
+    /// Which UDP ports the peer connections use.
+    pub udp: UdpPorts,
+    /// STUN/TURN servers this process's own peer connections gather through.
+    pub ice: IceConfig,
+}
+
+impl RtcConfig {
+    /// Loopback candidates only, ephemeral ports, no ICE servers (tests, benches).
+    pub fn loopback() -> Self {
+        Self { loopback_only: true, ..Self::default() }
+    }
+}
+
+/// The UDP ports of a process's peer connections.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum UdpPorts {
+    /// An ephemeral port per connection, anywhere.
+    #[default]
+    Any,
+    /// An ephemeral port per connection within `min..=max`.
+    Range { min: u16, max: u16 },
+    /// Every connection over one socket on this port (0: one the system picks).
+    Mux(u16),
+}
+
+impl std::str::FromStr for UdpPorts {
+    type Err = String;
+
+    /// `N` (one muxed port) or `MIN-MAX` (a range).
+    fn from_str(text: &str) -> Result<Self, String> {
+        let port = |p: &str| p.trim().parse::<u16>().ok().filter(|&p| p > 0).ok_or_else(|| format!("{p:?} is not a UDP port (1..=65535)"));
+        match text.split_once('-') {
+            Some((a, b)) => {
+                let (min, max) = (port(a)?, port(b)?);
+                if min > max {
+                    return Err(format!("the UDP port range {text} runs backwards"));
+                }
+                Ok(Self::Range { min, max })
+            }
+            None => Ok(Self::Mux(port(text)?)),
+        }
+    }
+}
+
+/// The process's `webrtc` API with its ICE servers.
+pub struct RtcApi {
+    pub api: API,
+    ice: IceConfig,
+    /// The one UDP port of [`UdpPorts::Mux`], as bound.
+    pub udp_port: Option<u16>,
+}
+
+impl RtcApi {
+    /// The ICE servers of this process for the session `id` (TURN credentials minted now).
+    pub fn ice_servers_for(&self, id: &str) -> Vec<IceServer> {
+        let unix_now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        self.ice.servers_for(unix_now, id)
+    }
+
+    /// A peer connection gathering through `servers`; `relay_only`: TURN relay candidates
+    /// only (`iceTransportPolicy: "relay"`).
+    pub async fn peer_connection(&self, servers: &[IceServer], relay_only: bool) -> Result<RTCPeerConnection> {
+        let config = RTCConfiguration {
+            ice_servers: servers
+                .iter()
+                .map(|s| RTCIceServer { urls: s.urls.clone(), username: s.username.clone().unwrap_or_default(), credential: s.credential.clone().unwrap_or_default() })
+                .collect(),
+            ice_transport_policy: if relay_only { RTCIceTransportPolicy::Relay } else { RTCIceTransportPolicy::All },
+            ..Default::default()
+        };
+        self.api.new_peer_connection(config).await.context("creating a peer connection")
+    }
 }
 
 /// Silence before a peer connection is `disconnected`…
@@ -38,14 +129,15 @@ pub const ICE_DISCONNECTED_AFTER: Duration = Duration::from_secs(4);
 /// …and then before it is `failed` (its session ends).
 pub const ICE_FAILED_AFTER: Duration = Duration::from_secs(6);
 
-/// Builds the `webrtc` API object shared by all peers of a process.
-pub fn build_api(cfg: &RtcConfig) -> Result<Arc<API>> {
+/// Builds the `webrtc` API object shared by all peers of a process (binds the one UDP
+/// port of [`UdpPorts::Mux`]: call inside a tokio runtime).
+pub fn build_api(cfg: &RtcConfig) -> Result<Arc<RtcApi>> {
     build_api_with(cfg, &|_| {})
 }
 
 /// [`build_api`], with `tweak` having the last word on the network settings (the test
 /// client: which interfaces, an impaired socket).
-pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Result<Arc<API>> {
+pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Result<Arc<RtcApi>> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video).context("registering H.264")?;
     let mut registry = Registry::new();
@@ -63,10 +155,40 @@ pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Re
     if !cfg.public_ips.is_empty() {
         settings.set_nat_1to1_ips(cfg.public_ips.clone(), webrtc::ice_transport::ice_candidate_type::RTCIceCandidateType::Host);
     }
+    let mut udp_port = None;
+    match cfg.udp {
+        UdpPorts::Any => {}
+        UdpPorts::Range { min, max } => {
+            let range = EphemeralUDP::new(min, max).map_err(|e| anyhow::anyhow!("UDP ports {min}-{max}: {e}"))?;
+            settings.set_udp_network(UDPNetwork::Ephemeral(range));
+        }
+        UdpPorts::Mux(port) => {
+            let ip = if cfg.loopback_only { IpAddr::V4(Ipv4Addr::LOCALHOST) } else { IpAddr::V4(Ipv4Addr::UNSPECIFIED) };
+            let socket = bind_udp(SocketAddr::new(ip, port))?;
+            udp_port = Some(socket.local_addr()?.port());
+            settings.set_udp_network(UDPNetwork::Muxed(UDPMuxDefault::new(UDPMuxParams::new(socket))));
+            // The socket is IPv4: candidates on IPv6 addresses would name a port nobody
+            // listens on (and a client that prefers them would wait for checks that fail).
+            settings.set_network_types(vec![NetworkType::Udp4]);
+        }
+    }
     tweak(&mut settings);
-    Ok(Arc::new(
-        APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build(),
-    ))
+    let api = APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build();
+    Ok(Arc::new(RtcApi { api, ice: cfg.ice.clone(), udp_port }))
+}
+
+/// The one UDP socket of every session, with the error a person can act on.
+fn bind_udp(addr: SocketAddr) -> Result<tokio::net::UdpSocket> {
+    let socket = match std::net::UdpSocket::bind(addr) {
+        Ok(s) => s,
+        Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => {
+            bail!("UDP port {} is in use by another process (choose another --rtc-port, or stop that process)", addr.port())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::PermissionDenied => bail!("no permission to bind UDP port {} ({e})", addr.port()),
+        Err(e) => return Err(e).with_context(|| format!("binding UDP {addr}")),
+    };
+    socket.set_nonblocking(true)?;
+    tokio::net::UdpSocket::from_std(socket).context("the UDP socket needs a tokio runtime")
 }
 
 /// A local candidate as the `RTCIceCandidateInit` JSON a browser accepts. Bundled: every
@@ -80,10 +202,10 @@ pub fn candidate_json(init: &RTCIceCandidateInit) -> Value {
     })
 }
 
-/// H.264 constrained baseline 3.1, packetization mode 1, NACK/PLI/FIR.
 /// The RTP clock of H.264 (RFC 6184).
 pub const H264_CLOCK_HZ: u32 = 90_000;
 
+/// H.264 constrained baseline 3.1, packetization mode 1, NACK/PLI/FIR.
 pub fn h264_codec() -> RTCRtpCodecParameters {
     let fb = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
     RTCRtpCodecParameters {
@@ -99,3 +221,27 @@ pub fn h264_codec() -> RTCRtpCodecParameters {
     }
 }
 
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn udp_ports_parse_as_one_port_or_a_range() {
+        assert_eq!("3478".parse::<UdpPorts>(), Ok(UdpPorts::Mux(3478)));
+        assert_eq!("40000-40100".parse::<UdpPorts>(), Ok(UdpPorts::Range { min: 40000, max: 40100 }));
+        for bad in ["0", "70000", "x", "5-4", "-5", "1-"] {
+            assert!(bad.parse::<UdpPorts>().is_err(), "{bad}");
+        }
+    }
+
+    #[tokio::test]
+    async fn a_port_in_use_is_refused_in_words() {
+        let taken = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let port = taken.local_addr().unwrap().port();
+        let err = build_api(&RtcConfig { udp: UdpPorts::Mux(port), ..RtcConfig::loopback() }).err().expect("the port is taken");
+        assert!(format!("{err:#}").contains(&format!("UDP port {port} is in use")), "{err:#}");
+        let api = build_api(&RtcConfig { udp: UdpPorts::Mux(0), ..RtcConfig::loopback() }).unwrap();
+        assert!(api.udp_port.is_some_and(|p| p > 0));
+    }
+}

@@ -17,7 +17,8 @@ use nephele_farm::{
 use nephele_master::{
     self as master, MasterConfig, compositor::ComposeChoice, driver::NatsSettings, encoder::DEFAULT_BITS_PER_PIXEL, metrics::MasterMetrics, web,
 };
-use nephele_rtc::RtcConfig;
+use nephele_protocol::ice::{IceConfig, IceUrl, TurnAuth};
+use nephele_rtc::{RtcConfig, UdpPorts};
 
 /// What a master serves and how it schedules.
 #[derive(clap::Args, Debug, Clone)]
@@ -43,6 +44,13 @@ pub struct MasterOptions {
     /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT).
     #[arg(long)]
     pub public_ip: Vec<String>,
+    /// UDP for the media: `N` carries every session over the one port N (open just that
+    /// in a firewall or a Kubernetes Service); `MIN-MAX` gives each session its own port
+    /// in the range. Default: any ephemeral port.
+    #[arg(long, value_name = "N|MIN-MAX", value_parser = parse_udp_ports)]
+    pub rtc_port: Option<UdpPorts>,
+    #[command(flatten)]
+    pub ice: IceArgs,
     /// Render at this fraction of the stream size and upscale (1 = exact), or `auto`:
     /// dynamic resolution, lowered fairly across users so the farm keeps up, and so that one
     /// frame renders in about --frame-budget-ms.
@@ -145,7 +153,7 @@ impl MasterOptions {
         let cfg = MasterConfig {
             name: name.into(),
             token: self.master_token.clone(),
-            rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone() },
+            rtc: RtcConfig { loopback_only: self.loopback_only, public_ips: self.public_ip.clone(), udp: self.rtc_port.unwrap_or_default(), ice: self.ice.config()? },
             core: CoreConfig { capacity: self.capacity, render_scale, batching: self.batching(), admission: self.admission, pose_latch: self.pose_latch, ..Default::default() },
             workers: self.workers,
             compose: self.compose,
@@ -172,6 +180,51 @@ pub struct ServeArgs {
     pub limits: LimitArgs,
     #[command(flatten)]
     pub master: MasterOptions,
+}
+
+fn parse_udp_ports(text: &str) -> Result<UdpPorts, String> {
+    text.parse()
+}
+
+fn parse_ice_url(text: &str) -> Result<IceUrl, String> {
+    text.parse()
+}
+
+/// STUN and TURN servers: handed to every client in `joined` (by signaling) and used by the
+/// master's own peer connections.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct IceArgs {
+    /// A STUN or TURN server: `stun:HOST[:PORT]`, `turn:HOST[:PORT][?transport=udp|tcp]`,
+    /// `turns:HOST[:PORT]` (TLS); repeat, or separate with commas.
+    #[arg(long = "ice-server", value_name = "URL", env = "NEPHELE_ICE_SERVERS", value_delimiter = ',', value_parser = parse_ice_url)]
+    pub ice_servers: Vec<IceUrl>,
+    /// Static TURN username (with --turn-credential), the same for every session.
+    #[arg(long, env = "NEPHELE_TURN_USERNAME")]
+    pub turn_username: Option<String>,
+    /// Static TURN password.
+    #[arg(long, env = "NEPHELE_TURN_CREDENTIAL", hide_env_values = true)]
+    pub turn_credential: Option<String>,
+    /// The secret shared with the TURN server (coturn: `use-auth-secret`,
+    /// `static-auth-secret`): each session gets its own credential that expires, and the
+    /// secret never leaves this server.
+    #[arg(long, env = "NEPHELE_TURN_SECRET", hide_env_values = true, conflicts_with_all = ["turn_username", "turn_credential"])]
+    pub turn_secret: Option<String>,
+    /// Lifetime of a minted TURN credential, seconds (a relayed session longer than this
+    /// loses its relay when the TURN server next checks).
+    #[arg(long, default_value_t = 86_400)]
+    pub turn_ttl: u64,
+}
+
+impl IceArgs {
+    pub fn config(&self) -> Result<IceConfig> {
+        let turn = match (&self.turn_secret, &self.turn_username, &self.turn_credential) {
+            (Some(secret), _, _) => TurnAuth::Secret { secret: secret.clone(), ttl_s: self.turn_ttl },
+            (None, Some(u), Some(c)) => TurnAuth::Static { username: u.clone(), credential: c.clone() },
+            (None, None, None) => TurnAuth::None,
+            _ => anyhow::bail!("--turn-username and --turn-credential go together"),
+        };
+        IceConfig::new(self.ice_servers.clone(), turn).map_err(anyhow::Error::msg)
+    }
 }
 
 /// What the HTTP/websocket server allows each connection and address (defaults:
@@ -298,6 +351,8 @@ pub struct SignalArgs {
     pub operator_token: Option<String>,
     #[command(flatten)]
     pub limits: LimitArgs,
+    #[command(flatten)]
+    pub ice: IceArgs,
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
@@ -307,7 +362,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
         let names = catalog.names().join(", ");
         let backend = catalog.backend_name.clone();
-        let hub = args.limits.hub(args.token.clone(), args.master.master_token.clone(), args.operator_token.clone())?;
+        let mut hub = args.limits.hub(args.token.clone(), args.master.master_token.clone(), args.operator_token.clone())?;
+        hub.ice = cfg.rtc.ice.clone();
         let server = web::spawn_local_with(listener, catalog, cfg, hub).await?;
         let addr = server.addr;
         println!("Nephele is serving {names} on {backend} — open http://{addr}/ (AR: http://{addr}/ar.html, metrics: http://{addr}/metrics)");
@@ -341,7 +397,8 @@ pub fn signal(args: SignalArgs) -> Result<()> {
         if args.token.is_some() && args.master_token.is_none() {
             anyhow::bail!("--token guards joins; masters need their own secret too: give --master-token (masters never accept the clients' token)");
         }
-        let cfg = args.limits.hub(args.token, args.master_token, args.operator_token)?;
+        let mut cfg = args.limits.hub(args.token, args.master_token, args.operator_token)?;
+        cfg.ice = args.ice.config()?;
         let state = nephele_signaling::SignalState::new(cfg);
         state.spawn_tick_task();
         let gate = state.gate();

@@ -12,8 +12,12 @@
 //! These types are the single definition of the protocol: the master node and the
 //! replay client serialize/deserialize them, the web page mirrors them by hand.
 
+pub mod ice;
+
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
+
+pub use ice::IceServer;
 
 /// The rule for scene and master names: 1..=64 characters from `[A-Za-z0-9_-]`.
 pub fn is_valid_name(name: &str) -> bool {
@@ -261,6 +265,10 @@ pub enum ToClient {
         session: String,
         /// Id of the master serving the session.
         master: String,
+        /// STUN and TURN servers for the client's peer connection (TURN with credentials
+        /// for this session); absent when the deployment has none.
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        ice_servers: Vec<IceServer>,
     },
     /// The master's WebRTC answer.
     Answer {

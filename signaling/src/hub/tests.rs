@@ -597,3 +597,39 @@ fn a_connected_session_outlives_its_clients_signaling_connection() {
     assert_eq!(out.len(), 1);
     assert_eq!(out[0].1["type"], "leave");
 }
+
+/// `joined` carries the deployment's STUN server and a TURN credential minted for the
+/// session, never the secret; without ICE servers it has no `ice_servers` at all.
+#[test]
+fn joined_hands_each_client_its_own_turn_credential() {
+    use nephele_protocol::ice::{IceConfig, TurnAuth, turn_rest_credentials};
+    let (mut hub, now) = hub_with(None);
+    add_master(&mut hub, 1, "m", 4, now);
+    hub.connect(ConnId(2), now);
+    let plain = json_of(&send(&mut hub, 2, join_json(), now));
+    assert!(plain[0].1.get("ice_servers").is_none(), "{plain:?}");
+
+    let urls = ["stun:stun.example.org", "turn:turn.example.org:3478?transport=udp"].map(|u| u.parse().unwrap()).to_vec();
+    let ice = IceConfig::new(urls, TurnAuth::Secret { secret: "shh-secret".into(), ttl_s: 3600 }).unwrap();
+    let mut hub = Hub::new(HubConfig { ice, ..HubConfig::default() });
+    add_master(&mut hub, 1, "m", 4, now);
+    let mut creds = Vec::new();
+    for conn in [2, 3] {
+        hub.connect(ConnId(conn), now);
+        let out = json_of(&send(&mut hub, conn, join_json(), now));
+        let joined = &out[0].1;
+        assert!(!joined.to_string().contains("shh-secret"), "{joined}");
+        let servers = joined["ice_servers"].as_array().unwrap();
+        assert_eq!(servers[0], json!({"urls":["stun:stun.example.org"]}));
+        let (user, pass) = (servers[1]["username"].as_str().unwrap(), servers[1]["credential"].as_str().unwrap());
+        let session = joined["session"].as_str().unwrap();
+        let (expiry, id) = user.split_once(':').unwrap();
+        assert_eq!(id, format!("nephele-{session}"));
+        let expiry: u64 = expiry.parse().unwrap();
+        let unix_now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_secs();
+        assert!((unix_now + 3590..=unix_now + 3610).contains(&expiry), "{user}");
+        assert_eq!(turn_rest_credentials("shh-secret", expiry, id).1, pass);
+        creds.push(pass.to_owned());
+    }
+    assert_ne!(creds[0], creds[1]);
+}
