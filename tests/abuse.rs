@@ -102,7 +102,8 @@ async fn leaving_cancels_the_render_of_a_4k_frame() {
     let during = (bystander.frames() - attack_start.1) as f64 / attack_start.0.elapsed().as_secs_f64();
     let cancelled = server.metrics.tasks_cancelled.get();
     // Once the last 4K task stops, the bystander is alone again.
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    let alone = nephele_e2e::wait_until(Duration::from_secs(30), || server.metrics.rays_in_flight.get() < 3840 * 2160).await;
+    assert!(alone, "a 4K task was still on a worker 30 s after its user left");
     let after = bystander.fps_over(Duration::from_secs(2)).await;
     println!("bystander fps: before {before:.1}, during {cycles} 4K join/pose/leave cycles {during:.1}, after {after:.1}; tasks cancelled {cancelled}");
     assert!(cancelled >= cycles as u64 / 2, "only {cancelled} of {cycles} abandoned 4K tasks were cancelled");

@@ -202,7 +202,9 @@ async fn nats_going_away_is_told_and_the_stream_comes_back() {
         let o = opts(server.signal_url(), "trio", (160, 120), 25);
         async move { replay(&trace, &o, None).await }
     });
-    tokio::time::sleep(Duration::from_millis(2000)).await;
+    // NATS goes away once the stream runs (the master's own count), for 2 s.
+    let streaming = nephele_e2e::wait_until(Duration::from_secs(20), || server.metrics.frames.get() >= 25).await;
+    assert!(streaming, "the stream never started");
     nats.stop();
     tokio::time::sleep(Duration::from_millis(2000)).await;
     nats.restart();

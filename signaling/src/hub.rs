@@ -156,6 +156,9 @@ pub enum SignalError {
     /// Too many sessions from one address are joined but not connected yet.
     #[error("{pending} sessions from your address are still connecting (limit {limit}); finish or leave one first")]
     PendingJoins { pending: usize, limit: usize },
+    /// This signaling server is shutting down.
+    #[error("this signaling server is shutting down; try again in a moment")]
+    Draining,
 }
 
 impl SignalError {
@@ -165,7 +168,7 @@ impl SignalError {
             Self::BadMessage(_) => ErrorCode::BadMessage,
             Self::TooLarge { .. } => ErrorCode::TooLarge,
             Self::Unauthorized => ErrorCode::Unauthorized,
-            Self::NoMaster | Self::AllFull { .. } => ErrorCode::NoCapacity,
+            Self::NoMaster | Self::AllFull { .. } | Self::Draining => ErrorCode::NoCapacity,
             Self::UnknownScene { .. } => ErrorCode::UnknownScene,
             Self::BadRequest(_) => ErrorCode::BadRequest,
             Self::WrongRole { .. } => ErrorCode::WrongRole,
@@ -258,6 +261,8 @@ pub struct Hub {
     /// Starts every session id; unique per hub so that ids never repeat across a restart
     /// (sessions outlive signaling: their masters still hold the old ids).
     session_prefix: String,
+    /// Set by [`Hub::drain`]: joins are refused.
+    draining: bool,
 }
 
 type Res = Result<Vec<Outgoing>, SignalError>;
@@ -274,7 +279,19 @@ impl Hub {
             sessions: BTreeMap::new(),
             next_session: 1,
             session_prefix: "s".into(),
+            draining: false,
         }
+    }
+
+    /// Refuse every join from now on (the server is shutting down); sessions already
+    /// paired carry on, their media being their masters'.
+    pub fn drain(&mut self) {
+        self.draining = true;
+    }
+
+    /// Sessions paired but whose peers have not connected yet.
+    pub fn connecting(&self) -> usize {
+        self.sessions.values().filter(|s| !s.connected).count()
     }
 
     /// Session ids start with `prefix` (`[A-Za-z0-9_-]`; the default is `s`).
@@ -574,6 +591,9 @@ impl Hub {
 
     fn join(&mut self, conn: ConnId, req: JoinSpec, token: Option<&str>, now: Instant) -> Res {
         Self::check_token(self.cfg.token.as_deref(), token)?;
+        if self.draining {
+            return Err(SignalError::Draining);
+        }
         if let Some(Peer::Client {
             session: Some(session),
         }) = self.peers.get(&conn)

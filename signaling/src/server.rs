@@ -127,6 +127,29 @@ impl SignalState {
         }
     }
 
+    /// Refuse joins from now on (shutting down); see [`crate::Hub::drain`].
+    pub fn drain(&self) {
+        self.lock().hub.drain();
+    }
+
+    /// Sessions paired whose peers have not connected yet.
+    pub fn connecting(&self) -> usize {
+        self.lock().hub.connecting()
+    }
+
+    /// Closes every websocket after what is already queued for it (an `ended`, say), and
+    /// returns once all are closed or `limit` has passed (shutting down).
+    pub async fn close_all(&self, limit: Duration) {
+        let deadline = tokio::time::Instant::now() + limit;
+        let senders: Vec<mpsc::Sender<Frame>> = self.lock().senders.values().cloned().collect();
+        for sender in senders {
+            let _ = tokio::time::timeout_at(deadline, sender.send(Frame::Close)).await;
+        }
+        while !self.lock().senders.is_empty() && tokio::time::Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+
     /// Current masters and load.
     pub fn stats(&self) -> crate::HubStats {
         let mut stats = self.lock().hub.stats();

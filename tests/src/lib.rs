@@ -323,11 +323,18 @@ pub fn spawn_fixture_master(addr: &str) -> Reap {
 
 /// A plain HTTP/1.1 GET on loopback; returns the body.
 pub async fn http_get(addr: std::net::SocketAddr, path: &str) -> String {
+    let (status, body) = http_request(addr, path).await;
+    assert_eq!(status, 200, "GET {path}: {body}");
+    body
+}
+
+/// A plain HTTP/1.1 GET on loopback; returns the status code and the body.
+pub async fn http_request(addr: std::net::SocketAddr, path: &str) -> (u16, String) {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
     s.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes()).await.unwrap();
     let mut out = String::new();
     s.read_to_string(&mut out).await.unwrap();
-    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
-    out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default()
+    let status = out.split(' ').nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    (status, out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default())
 }

@@ -175,6 +175,10 @@ pub enum Input {
     WorkerDown { worker: WorkerId, tasks_lost: bool },
     /// Signaling (re)accepted our registration: send a heartbeat at once.
     SignalingUp,
+    /// The master is stopping: end every session with `reason` (told through signaling),
+    /// refuse joins with it from now on, and say saturated so signaling sends joins
+    /// elsewhere. Tasks already on workers finish; see [`MasterCore::is_idle`].
+    Drain { reason: String },
     /// Nothing happened; time passed.
     Timeout,
 }
@@ -316,6 +320,8 @@ pub struct MasterCore {
     now: Instant,
     /// What happened since the edge last drained them.
     events: Vec<CoreEvent>,
+    /// Set by [`Input::Drain`]: why this master takes no more sessions.
+    draining: Option<String>,
 }
 
 impl MasterCore {
@@ -336,7 +342,13 @@ impl MasterCore {
             farm_was_lost: false,
             now,
             events: Vec::new(),
+            draining: None,
         }
+    }
+
+    /// No session left and no render task on a worker: a draining master may exit.
+    pub fn is_idle(&self) -> bool {
+        self.users.is_empty() && self.in_flight.is_empty()
     }
 
     pub fn config(&self) -> &CoreConfig {
@@ -431,6 +443,15 @@ impl MasterCore {
             }
             Input::WorkerDown { worker, tasks_lost } => self.worker_down(&worker, tasks_lost),
             Input::SignalingUp => self.next_heartbeat = Some(now),
+            Input::Drain { reason } => {
+                tracing::info!(sessions = self.users.len(), %reason, "draining");
+                let sessions: Vec<String> = self.users.keys().cloned().collect();
+                for session in sessions {
+                    self.drop_user(&session, &reason, true);
+                }
+                self.draining = Some(reason);
+                self.next_heartbeat = Some(now);
+            }
             Input::Timeout => {}
         }
         self.tick(now);
@@ -533,6 +554,9 @@ impl MasterCore {
 
     /// `Err((metric reason, words for the user))`.
     fn admit(&self, req: &JoinRequest, now: Instant) -> Result<(), (&'static str, String)> {
+        if let Some(reason) = &self.draining {
+            return Err(("draining", reason.clone()));
+        }
         if self.users.contains_key(&req.session) {
             return Err(("duplicate", format!("session {} is already here", req.session)));
         }
@@ -699,7 +723,7 @@ impl MasterCore {
         self.schedule(now);
         // With admission open the master takes joins whatever the load, so it never asks
         // signaling to send them elsewhere.
-        let saturated = self.cfg.admission == Admission::Load && self.users.values().any(|u| self.is_starving(u, now));
+        let saturated = self.draining.is_some() || (self.cfg.admission == Admission::Load && self.users.values().any(|u| self.is_starving(u, now)));
         // Signaling hears at once when the farm saturates or recovers.
         if saturated != self.saturated_said {
             self.next_heartbeat = Some(now);

@@ -738,3 +738,25 @@ fn the_pose_latch_starts_frames_on_fresher_poses() {
     assert!(median_on + 1.0 < median_off && worst_on + 4.0 <= worst_off, "{median_on} {worst_on} vs {median_off} {worst_off}");
     assert!(fps_on >= 0.85 * fps_off, "{fps_on} vs {fps_off}");
 }
+
+/// Draining ends every session at once with the reason (told through signaling), refuses
+/// joins with it, says saturated, and is idle once the tasks on workers come back.
+#[test]
+fn draining_ends_every_session_in_words_and_refuses_joins() {
+    let mut sim = Sim::new(fixed(8, true, Admission::Open), 2e6, 2.0);
+    assert!(sim.join("a", "lego", 320, 240, 25) && sim.join("b", "lego", 320, 240, 25));
+    sim.run_until(300);
+    assert!(!sim.core.is_idle());
+    let reason = "the server is shutting down; reconnect to continue";
+    sim.core.handle_input(sim.now, Input::Drain { reason: reason.into() });
+    sim.drain();
+    assert_eq!(sim.closed.get("a").map(String::as_str), Some(reason));
+    assert_eq!(sim.closed.get("b").map(String::as_str), Some(reason));
+    assert!(!sim.join("c", "lego", 320, 240, 25));
+    assert_eq!(sim.rejected.get("c").map(String::as_str), Some(reason));
+    assert!(sim.events.iter().any(|e| matches!(e, CoreEvent::Refused { reason: "draining" })));
+    assert!(sim.heartbeats.last().is_some_and(|&(sessions, _, saturated)| sessions == 0 && saturated), "{:?}", sim.heartbeats);
+    // Renders in flight when it began come back (or are cancelled), then nothing is left.
+    sim.run_until(1000);
+    assert!(sim.core.is_idle());
+}

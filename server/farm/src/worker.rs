@@ -10,7 +10,7 @@
 use std::{
     collections::HashMap,
     sync::{Arc, Mutex},
-    time::Instant,
+    time::{Duration, Instant},
 };
 
 use anyhow::{Context, Result, bail};
@@ -79,6 +79,20 @@ pub struct WorkerConfig {
 
 /// Serves tasks until the process is stopped or NATS closes the connection for good.
 pub async fn run(cfg: WorkerConfig, catalog: Arc<Catalog>) -> Result<()> {
+    run_until(cfg, catalog, std::future::pending(), Duration::from_secs(30), |_| {}).await
+}
+
+/// [`run`] until `stop` resolves, then drains: its endpoints stop (the farm's queue sends
+/// it nothing more and discovery no longer lists it), the tasks it is rendering finish and
+/// are answered (up to `drain_deadline`), and it returns `Ok`. `ready` hears `None` once it
+/// serves and `Some(why)` when it does not (draining).
+pub async fn run_until(
+    cfg: WorkerConfig,
+    catalog: Arc<Catalog>,
+    stop: impl std::future::Future<Output = ()>,
+    drain_deadline: Duration,
+    ready: impl Fn(Option<&str>),
+) -> Result<()> {
     if !nephele_protocol::is_valid_name(&cfg.id) {
         bail!("worker id {:?} must be 1..=64 characters from [A-Za-z0-9_-]", cfg.id);
     }
@@ -131,9 +145,19 @@ pub async fn run(cfg: WorkerConfig, catalog: Arc<Catalog>) -> Result<()> {
             }
         }
     });
-    let slots = Arc::new(Semaphore::new(cfg.farm.slots() as usize));
+    let slot_count = cfg.farm.slots();
+    let slots = Arc::new(Semaphore::new(slot_count as usize));
     let mut requests = futures_util::stream::select_all(endpoints);
-    while let Some(request) = requests.next().await {
+    ready(None);
+    tokio::pin!(stop);
+    loop {
+        let request = tokio::select! {
+            request = requests.next() => match request {
+                Some(r) => r,
+                None => bail!("NATS closed the worker's subscriptions"),
+            },
+            () = &mut stop => break,
+        };
         let permit = Arc::clone(&slots).acquire_owned().await?;
         let (client, catalog, id, running) = (client.clone(), Arc::clone(&catalog), cfg.id.clone(), Arc::clone(&running));
         tokio::spawn(async move {
@@ -141,7 +165,16 @@ pub async fn run(cfg: WorkerConfig, catalog: Arc<Catalog>) -> Result<()> {
             drop(permit);
         });
     }
-    bail!("NATS closed the worker's subscriptions")
+    ready(Some("draining: the worker is shutting down"));
+    // No new tasks: the endpoints unsubscribe, so the queue groups skip this worker.
+    drop(requests);
+    let busy = slot_count as usize - slots.available_permits();
+    tracing::info!(worker = %cfg.id, busy, "draining");
+    let finished = tokio::time::timeout(drain_deadline, slots.acquire_many(slot_count)).await.is_ok();
+    service.stop().await.map_err(|e| anyhow::anyhow!("stopping the NATS service: {e}"))?;
+    client.flush().await.ok();
+    println!("worker {} stopped: {}", cfg.id, if finished { "every task finished" } else { "the drain deadline passed with tasks running" });
+    Ok(())
 }
 
 /// Cancel flags of the tasks being rendered, by reply subject.

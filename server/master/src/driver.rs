@@ -21,13 +21,14 @@ use std::{
 use anyhow::{Context, Result, bail};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
-use nephele_signaling::{ToMaster, ToSignal};
+use nephele_signaling::{Health, ToMaster, ToSignal};
 use serde_json::Value;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 use tokio_tungstenite::tungstenite::Message;
 
 use nephele_core::{
     CoreConfig, EncodeJob, EncodeView, Input, JoinRequest, MasterCore, Output,
+    events::CoreEvent,
     task::{RenderTask, TaskId, TaskResult, WorkerId},
 };
 use nephele_farm::{
@@ -149,15 +150,48 @@ struct SessionEdge {
     fps: u32,
 }
 
+/// What clients are told when their master drains.
+pub const DRAIN_REASON: &str = "this render server is shutting down; reconnect to continue on another";
+
+/// How a master stops, and what its `/readyz` says.
+pub struct Lifecycle {
+    /// Resolves when the master is to drain and stop (SIGTERM); by default never.
+    pub stop: std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>,
+    /// Longest a drain waits for render tasks on workers and for signaling to hear that
+    /// the sessions ended.
+    pub drain_deadline: Duration,
+    /// Readiness: `signaling` (registered) and `workers` (one up); not ready from the
+    /// moment the drain starts.
+    pub health: Health,
+}
+
+impl Default for Lifecycle {
+    fn default() -> Self {
+        Self {
+            stop: Box::pin(std::future::pending()),
+            drain_deadline: Duration::from_secs(10),
+            health: Health::starting(&[("signaling", "not registered yet"), ("workers", "no render worker up yet")]),
+        }
+    }
+}
+
 /// Connects to `signal_url` (ws://host:port/signal), registers, and serves sessions until
 /// signaling refuses our credentials; reconnects with back-off if signaling goes away.
 pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, metrics: Arc<MasterMetrics>) -> Result<()> {
+    run_with(signal_url, cfg, catalog, metrics, Lifecycle::default()).await
+}
+
+/// [`run`] until `life.stop` resolves, then drains: joins are refused, every session ends
+/// with [`DRAIN_REASON`] (its client hears it through signaling at once), tasks on workers
+/// finish, and it returns `Ok` once nothing is left or at `life.drain_deadline`.
+pub async fn run_with(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, metrics: Arc<MasterMetrics>, mut life: Lifecycle) -> Result<()> {
     let api = build_api(&cfg.rtc)?;
     crate::memory::spawn_trimmer();
     let (events_tx, mut events) = mpsc::unbounded_channel::<Event>();
     let (to_signal, outbox) = mpsc::unbounded_channel::<ToSignal>();
+    let (flush_tx, flushes) = mpsc::unbounded_channel::<oneshot::Sender<()>>();
     let register = ToSignal::Register { name: cfg.name.clone(), capacity: cfg.core.capacity, scenes: catalog.names(), token: cfg.token.clone() };
-    tokio::spawn(signaling_link(signal_url, register, events_tx.clone(), outbox));
+    tokio::spawn(signaling_link(signal_url, register, events_tx.clone(), outbox, flushes, life.health.clone()));
     let worker_events = events_tx.clone();
     let report = move |e| {
         let _ = worker_events.send(Event::Worker(e));
@@ -171,12 +205,19 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
     let mut core = MasterCore::new(cfg.core.clone(), catalog.infos(), Instant::now());
     let mut sessions: HashMap<String, SessionEdge> = HashMap::new();
     let mut inputs: Vec<Input> = Vec::new();
+    let mut drain_until: Option<tokio::time::Instant> = None;
     loop {
         let wake = loop {
             match core.poll_output() {
                 Output::Timeout(t) => {
                     for event in core.drain_events() {
                         metrics.record(&event);
+                        if let CoreEvent::WorkerUp { workers, .. } | CoreEvent::WorkerLost { workers, .. } = &event {
+                            match workers {
+                                0 => life.health.fail("workers", "no render worker up"),
+                                _ => life.health.pass("workers"),
+                            }
+                        }
                     }
                     break t;
                 }
@@ -187,7 +228,26 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
             core.handle_input(Instant::now(), input);
             continue;
         }
+        if let Some(deadline) = drain_until {
+            let now = tokio::time::Instant::now();
+            if (core.is_idle() && sessions.is_empty()) || now >= deadline {
+                // Signaling hears every `end` queued so far before this master goes.
+                let (done, flushed) = oneshot::channel();
+                let _ = flush_tx.send(done);
+                let flushed = tokio::time::timeout_at(deadline.max(now + Duration::from_secs(1)), flushed).await.is_ok();
+                let left = if core.is_idle() { "every task finished" } else { "the drain deadline passed with tasks left" };
+                tracing::info!(flushed, "drained: {left}");
+                return Ok(());
+            }
+        }
+        let wake = tokio::time::Instant::from_std(wake);
+        let wake = drain_until.map_or(wake, |d| wake.min(d));
         tokio::select! {
+            () = &mut life.stop, if drain_until.is_none() => {
+                life.health.drain();
+                core.handle_input(Instant::now(), Input::Drain { reason: DRAIN_REASON.into() });
+                drain_until = Some(tokio::time::Instant::now() + life.drain_deadline);
+            }
             ev = events.recv() => {
                 let Some(ev) = ev else { bail!("the master's event channel closed") };
                 let input = match ev {
@@ -198,7 +258,7 @@ pub async fn run(signal_url: String, cfg: MasterConfig, catalog: Arc<Catalog>, m
                     core.handle_input(Instant::now(), input);
                 }
             }
-            _ = tokio::time::sleep_until(tokio::time::Instant::from_std(wake)) => core.handle_input(Instant::now(), Input::Timeout),
+            _ = tokio::time::sleep_until(wake) => core.handle_input(Instant::now(), Input::Timeout),
         }
     }
 }
@@ -522,10 +582,19 @@ async fn peer_loop(
 
 /// Keeps one registered websocket to signaling, reconnecting with back-off (0.5 s doubling
 /// to 10 s, back to 0.5 s after a successful registration).
-async fn signaling_link(url: String, register: ToSignal, events: mpsc::UnboundedSender<Event>, mut outbox: mpsc::UnboundedReceiver<ToSignal>) {
+async fn signaling_link(
+    url: String,
+    register: ToSignal,
+    events: mpsc::UnboundedSender<Event>,
+    mut outbox: mpsc::UnboundedReceiver<ToSignal>,
+    mut flushes: mpsc::UnboundedReceiver<oneshot::Sender<()>>,
+    health: Health,
+) {
     let mut backoff = Duration::from_millis(500);
     loop {
-        match link_once(&url, &register, &events, &mut outbox, &mut backoff).await {
+        let outcome = link_once(&url, &register, &events, &mut outbox, &mut flushes, &mut backoff, &health).await;
+        health.fail("signaling", "the connection to signaling is lost; reconnecting");
+        match outcome {
             Ok(()) => tracing::warn!("signaling closed the connection; reconnecting"),
             Err(LinkError::Refused(why)) => {
                 let _ = events.send(Event::Fatal(format!("signaling refused our token: {why}")));
@@ -557,7 +626,9 @@ async fn link_once(
     register: &ToSignal,
     events: &mpsc::UnboundedSender<Event>,
     outbox: &mut mpsc::UnboundedReceiver<ToSignal>,
+    flushes: &mut mpsc::UnboundedReceiver<oneshot::Sender<()>>,
     backoff: &mut Duration,
+    health: &Health,
 ) -> Result<(), LinkError> {
     let (ws, _) = tokio_tungstenite::connect_async(url).await.with_context(|| format!("connecting to {url}"))?;
     let (mut ws_tx, mut ws_rx) = ws.split();
@@ -576,7 +647,10 @@ async fn link_once(
                     Err(e) => { tracing::warn!("unreadable message from signaling: {e}"); continue }
                 };
                 match &msg {
-                    ToMaster::Registered { .. } => *backoff = Duration::from_millis(500),
+                    ToMaster::Registered { .. } => {
+                        *backoff = Duration::from_millis(500);
+                        health.pass("signaling");
+                    }
                     ToMaster::Error { code: nephele_signaling::ErrorCode::Unauthorized, message } => return Err(LinkError::Refused(message.clone())),
                     _ => {}
                 }
@@ -587,6 +661,14 @@ async fn link_once(
             out = outbox.recv() => {
                 let Some(out) = out else { return Ok(()) };
                 ws_tx.send(Message::text(serde_json::to_string(&out)?)).await?;
+            }
+            // Everything queued before the request goes out, then it is answered.
+            Some(done) = flushes.recv() => {
+                while let Ok(out) = outbox.try_recv() {
+                    ws_tx.send(Message::text(serde_json::to_string(&out)?)).await?;
+                }
+                ws_tx.flush().await?;
+                let _ = done.send(());
             }
         }
     }

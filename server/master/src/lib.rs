@@ -21,4 +21,4 @@ pub mod nats_farm;
 pub mod peer;
 pub mod web;
 
-pub use driver::{MasterConfig, run};
+pub use driver::{DRAIN_REASON, Lifecycle, MasterConfig, run, run_with};

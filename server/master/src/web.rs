@@ -39,7 +39,19 @@ pub async fn spawn_local(listener: tokio::net::TcpListener, catalog: Arc<Catalog
 
 /// [`spawn_local`] with signaling's secrets. The in-process master registers with a
 /// masters' secret of its own (made here unless `hub` has one), so no one else can.
-pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Catalog>, mut cfg: MasterConfig, mut hub: nephele_signaling::HubConfig) -> std::io::Result<LocalServer> {
+pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Catalog>, cfg: MasterConfig, hub: nephele_signaling::HubConfig) -> std::io::Result<LocalServer> {
+    Ok(spawn_local_until(listener, catalog, cfg, hub, crate::Lifecycle::default()).await?.0)
+}
+
+/// [`spawn_local_with`] that drains and stops when `life.stop` resolves (`/readyz` from
+/// `life.health`); the handle ends when the master has drained.
+pub async fn spawn_local_until(
+    listener: tokio::net::TcpListener,
+    catalog: Arc<Catalog>,
+    mut cfg: MasterConfig,
+    mut hub: nephele_signaling::HubConfig,
+    life: crate::Lifecycle,
+) -> std::io::Result<(LocalServer, tokio::task::JoinHandle<anyhow::Result<()>>)> {
     let addr = listener.local_addr()?;
     let master_token = hub.master_token.clone().unwrap_or_else(random_secret);
     hub.master_token = Some(master_token.clone());
@@ -47,7 +59,7 @@ pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Ca
     let signaling = nephele_signaling::SignalState::new(hub);
     signaling.spawn_tick_task();
     let metrics = Arc::new(MasterMetrics::new());
-    let app = router(signaling.clone(), Arc::clone(&catalog), Arc::clone(&metrics));
+    let app = router(signaling.clone(), Arc::clone(&catalog), Arc::clone(&metrics)).merge(life.health.routes());
     let gate = signaling.gate();
     tokio::spawn(async move {
         if let Err(e) = nephele_signaling::serve_limited(listener, app, gate).await {
@@ -56,10 +68,12 @@ pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Ca
     });
     let m = Arc::clone(&metrics);
     let farm_is_remote = cfg.nats.is_some();
-    tokio::spawn(async move {
-        if let Err(e) = crate::run(format!("ws://{addr}/signal"), cfg, catalog, m).await {
+    let master = tokio::spawn(async move {
+        let ended = crate::run_with(format!("ws://{addr}/signal"), cfg, catalog, m, life).await;
+        if let Err(e) = &ended {
             tracing::error!("master stopped: {e:#}");
         }
+        ended
     });
     // Ready when the master has registered (a join before that would find no master) and a
     // worker has calibrated (before that nothing renders).
@@ -69,7 +83,7 @@ pub async fn spawn_local_with(listener: tokio::net::TcpListener, catalog: Arc<Ca
     if !farm_is_remote {
         wait_for(120, || metrics.farm_rays_per_s.get() > 0.0).await.ok_or_else(|| ready("had no render worker up", 120))?;
     }
-    Ok(LocalServer { addr, metrics, signaling })
+    Ok((LocalServer { addr, metrics, signaling }, master))
 }
 
 /// 128 random bits from the OS, hex.
@@ -183,8 +197,9 @@ fn page(mime: &'static str, body: &'static str) -> Response {
     r
 }
 
-/// `GET /metrics` alone on `listener` (`nephele master --metrics-listen`), until the process ends.
-pub async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<MasterMetrics>) -> std::io::Result<()> {
-    let app = Router::new().route("/metrics", get(move || std::future::ready(metrics.encode())));
+/// `GET /metrics`, `/healthz` and `/readyz` on `listener` (`nephele master --metrics-listen`),
+/// until the process ends.
+pub async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<MasterMetrics>, health: nephele_signaling::Health) -> std::io::Result<()> {
+    let app = Router::new().route("/metrics", get(move || std::future::ready(metrics.encode()))).merge(health.routes());
     axum::serve(listener, app).await
 }

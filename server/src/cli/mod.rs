@@ -3,6 +3,7 @@
 
 #[cfg(feature = "train")]
 pub mod data;
+pub mod lifecycle;
 pub mod render;
 pub mod replay;
 pub mod serve;

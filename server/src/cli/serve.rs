@@ -19,6 +19,10 @@ use nephele_master::{
 };
 use nephele_protocol::ice::{IceConfig, IceUrl, TurnAuth};
 use nephele_rtc::{RtcConfig, UdpPorts};
+use nephele_signaling::Health;
+
+use super::lifecycle::{DrainArgs, stop_signal};
+use nephele_master::Lifecycle;
 
 /// What a master serves and how it schedules.
 #[derive(clap::Args, Debug, Clone)]
@@ -179,6 +183,8 @@ pub struct ServeArgs {
     #[command(flatten)]
     pub limits: LimitArgs,
     #[command(flatten)]
+    pub drain: DrainArgs,
+    #[command(flatten)]
     pub master: MasterOptions,
 }
 
@@ -327,9 +333,11 @@ pub struct MasterArgs {
     /// Name shown in signaling's /status.
     #[arg(long, default_value = "master")]
     pub name: String,
-    /// Serve GET /metrics (Prometheus) on this address.
+    /// Serve GET /metrics (Prometheus), /healthz and /readyz on this address.
     #[arg(long)]
     pub metrics_listen: Option<String>,
+    #[command(flatten)]
+    pub drain: DrainArgs,
     #[command(flatten)]
     pub master: MasterOptions,
 }
@@ -353,6 +361,8 @@ pub struct SignalArgs {
     pub limits: LimitArgs,
     #[command(flatten)]
     pub ice: IceArgs,
+    #[command(flatten)]
+    pub drain: DrainArgs,
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
@@ -364,11 +374,21 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let backend = catalog.backend_name.clone();
         let mut hub = args.limits.hub(args.token.clone(), args.master.master_token.clone(), args.operator_token.clone())?;
         hub.ice = cfg.rtc.ice.clone();
-        let server = web::spawn_local_with(listener, catalog, cfg, hub).await?;
+        let life = Lifecycle { stop: Box::pin(stop_signal("serve")), drain_deadline: args.drain.deadline(), ..Lifecycle::default() };
+        let (server, master) = web::spawn_local_until(listener, catalog, cfg, hub, life).await?;
         let addr = server.addr;
         println!("Nephele is serving {names} on {backend} — open http://{addr}/ (AR: http://{addr}/ar.html, metrics: http://{addr}/metrics)");
-        tokio::signal::ctrl_c().await?;
-        eprintln!("stopping");
+        let drained = master.await.context("the master task failed")?;
+        // Signaling, in this process, has heard every session end from the master: once
+        // it has told their clients, it closes every websocket properly.
+        server.signaling.drain();
+        let told_by = tokio::time::Instant::now() + std::time::Duration::from_secs(1);
+        while server.signaling.stats().sessions > 0 && tokio::time::Instant::now() < told_by {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+        server.signaling.close_all(std::time::Duration::from_secs(1)).await;
+        drained?;
+        eprintln!("stopped");
         Ok(())
     })
 }
@@ -378,31 +398,52 @@ pub fn master(args: MasterArgs) -> Result<()> {
     let metrics = Arc::new(MasterMetrics::new());
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
+        let life = Lifecycle { stop: Box::pin(stop_signal("master")), drain_deadline: args.drain.deadline(), ..Lifecycle::default() };
         if let Some(listen) = &args.metrics_listen {
             let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
-            println!("metrics on http://{}/metrics", listener.local_addr()?);
+            println!("metrics on http://{}/metrics (health: /healthz, /readyz)", listener.local_addr()?);
             // Bind it to loopback or a private network: it has no token of its own.
-            tokio::spawn(web::serve_metrics(listener, Arc::clone(&metrics)));
+            tokio::spawn(web::serve_metrics(listener, Arc::clone(&metrics), life.health.clone()));
         }
-        master::run(args.signal, cfg, catalog, metrics).await
+        master::run_with(args.signal, cfg, catalog, metrics, life).await?;
+        eprintln!("stopped");
+        Ok(())
     })
 }
 
 pub fn signal(args: SignalArgs) -> Result<()> {
+    if args.token.is_some() && args.master_token.is_none() {
+        anyhow::bail!("--token guards joins; masters need their own secret too: give --master-token (masters never accept the clients' token)");
+    }
+    let mut cfg = args.limits.hub(args.token, args.master_token, args.operator_token)?;
+    cfg.ice = args.ice.config()?;
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async {
         let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("binding {}", args.listen))?;
         let addr = listener.local_addr()?;
-        println!("signaling on ws://{addr}/signal (status: http://{addr}/status) — the pages: http://{addr}/");
-        if args.token.is_some() && args.master_token.is_none() {
-            anyhow::bail!("--token guards joins; masters need their own secret too: give --master-token (masters never accept the clients' token)");
-        }
-        let mut cfg = args.limits.hub(args.token, args.master_token, args.operator_token)?;
-        cfg.ice = args.ice.config()?;
+        println!("signaling on ws://{addr}/signal (status: http://{addr}/status, health: /healthz, /readyz) — the pages: http://{addr}/");
         let state = nephele_signaling::SignalState::new(cfg);
         state.spawn_tick_task();
         let gate = state.gate();
-        nephele_signaling::serve_limited(listener, web::signaling_router(state), gate).await.context("signaling server failed")
+        let health = Health::default();
+        let app = web::signaling_router(state.clone()).merge(health.routes());
+        let server = tokio::spawn(nephele_signaling::serve_limited(listener, app, gate));
+        tokio::select! {
+            ended = server => return ended.context("the signaling server task failed")?.context("signaling server failed"),
+            () = stop_signal("signal") => {}
+        }
+        // Refuse joins; the sessions already paired stream on (their media is their
+        // masters'); wait for those still connecting, then go.
+        health.drain();
+        state.drain();
+        let deadline = tokio::time::Instant::now() + args.drain.deadline();
+        while state.connecting() > 0 && tokio::time::Instant::now() < deadline {
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+        let connecting = state.connecting();
+        state.close_all(std::time::Duration::from_secs(1)).await;
+        eprintln!("stopped ({connecting} session(s) still connecting)");
+        Ok(())
     })
 }
 
@@ -423,6 +464,11 @@ pub struct WorkerArgs {
     pub knobs: nephele_farm::assets::RenderKnobs,
     #[command(flatten)]
     pub nats: NatsArgs,
+    /// Serve GET /healthz and /readyz (NATS connected and taking tasks) on this address.
+    #[arg(long)]
+    pub health_listen: Option<String>,
+    #[command(flatten)]
+    pub drain: DrainArgs,
 }
 
 pub fn worker(args: WorkerArgs) -> Result<()> {
@@ -437,5 +483,18 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
     let host: String = host.chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-').take(32).collect();
     let id = args.id.clone().unwrap_or_else(|| format!("{}-{host}-{}", args.farm.as_str(), std::process::id()));
     let cfg = WorkerConfig { nats_url: url, auth: args.nats.auth()?, farm: args.farm, id };
-    tokio::runtime::Runtime::new()?.block_on(nephele_farm::worker::run(cfg, catalog))
+    tokio::runtime::Runtime::new()?.block_on(async move {
+        let health = Health::starting(&[("nats", "not serving tasks yet")]);
+        if let Some(listen) = &args.health_listen {
+            let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
+            println!("health on http://{}/healthz and /readyz", listener.local_addr()?);
+            let app: axum::Router = health.routes();
+            tokio::spawn(async move { axum::serve(listener, app).await });
+        }
+        let ready = |why: Option<&str>| match why {
+            None => health.pass("nats"),
+            Some(why) => health.fail("nats", why),
+        };
+        nephele_farm::worker::run_until(cfg, catalog, stop_signal("worker"), args.drain.deadline(), ready).await
+    })
 }

@@ -633,3 +633,17 @@ fn joined_hands_each_client_its_own_turn_credential() {
     }
     assert_ne!(creds[0], creds[1]);
 }
+
+/// A draining hub refuses joins in words and counts the sessions still connecting.
+#[test]
+fn a_draining_hub_refuses_joins() {
+    let (mut hub, now) = hub_with(None);
+    add_master(&mut hub, 1, "m", 4, now);
+    add_client(&mut hub, 2, now);
+    assert_eq!(hub.connecting(), 1);
+    hub.drain();
+    hub.connect(ConnId(3), now);
+    let (to, code, message) = error_code(&send(&mut hub, 3, join_json(), now));
+    assert_eq!((to, code.as_str()), (3, "no_capacity"));
+    assert!(message.contains("shutting down"), "{message}");
+}
