@@ -48,10 +48,16 @@ async fn browser_check(script: PathBuf, url: String, chromium: String) -> std::p
 
 /// Starts `nephele serve` on `addr` and waits for its "open http://…" line.
 fn serve(addr: &str) -> Reap {
+    serve_with(addr, &[])
+}
+
+/// [`serve`] with `extra` arguments.
+fn serve_with(addr: &str, extra: &[&str]) -> Reap {
     use std::io::{BufRead, BufReader};
     let scene = nephele_e2e::fixture_scene();
     let mut child = nephele()
         .args(["serve", "--listen", addr, "--scene", &scene, "--backend", "cpu", "--loopback-only"])
+        .args(extra)
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -183,4 +189,25 @@ async fn the_headset_page_streams_both_eyes_in_webxr() {
     let d = pose.views[1].view.world_from_camera.w_axis - pose.views[0].view.world_from_camera.w_axis;
     assert!(d.truncate().dot(pose.views[0].view.world_from_camera.x_axis.truncate()) > 0.0, "eye 1 is right of eye 0");
     assert!(centroids[0] > centroids[1] + 1.0, "parallax: object at x {:.1} (left eye) vs {:.1} (right eye)", centroids[0], centroids[1]);
+}
+
+/// The viewer forced through TURN (`?relay=1`) in headless Chromium: `nephele serve` hands
+/// the page a real coturn with a credential minted for its session from the shared secret,
+/// and the video arrives over the browser's relay candidate, without a camera request
+/// (see `tests/browser/relay.mjs`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn chromium_streams_the_viewer_through_turn() {
+    assert!(repo().join("tests/browser/node_modules/playwright-core").exists(), "run `npm ci --prefix tests/browser` (tests/run does)");
+    let turn = nephele_e2e::Coturn::start("browser-secret");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let turn_url = format!("turn:127.0.0.1:{}?transport=udp", turn.port);
+    let _server = serve_with(&addr, &["--ice-server", &turn_url, "--turn-secret", "browser-secret"]);
+    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+    let output = browser_check(repo().join("tests/browser/relay.mjs"), format!("http://{addr}/"), chromium).await;
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    println!("{stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or_default()).unwrap_or_else(|_| panic!("no JSON report: {stdout}"));
+    assert!(output.status.success() && report["ok"] == true, "relay check failed: {report}");
+    assert_eq!(report["path"]["local"], "relay", "{report}");
 }

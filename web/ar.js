@@ -246,7 +246,7 @@ async function main() {
   const connect = () => {
     if (sceneSelect.value !== cameraScene) cameraScene = null;
     anchor.x = anchor.y = 0;
-    conn.connect({ scene: sceneSelect.value, width: options.width, height: options.height, fps: options.fps, token: options.token });
+    conn.connect({ scene: sceneSelect.value, width: options.width, height: options.height, fps: options.fps, token: options.token, relay: options.relay });
   };
   sceneSelect.addEventListener('change', connect);
   connect();

@@ -490,6 +490,7 @@ export class Connection {
     const out = { framesDecoded: 0, bytesReceived: 0, frameWidth: 0, frameHeight: 0, framesPerSecond: 0 };
     if (!this.pc) return out;
     const report = await this.pc.getStats();
+    let pairId = null;
     report.forEach((s) => {
       if (s.type === 'inbound-rtp' && (s.kind === 'video' || s.mediaType === 'video')) {
         out.framesDecoded = s.framesDecoded || 0;
@@ -498,7 +499,13 @@ export class Connection {
         out.frameHeight = s.frameHeight || 0;
         out.framesPerSecond = s.framesPerSecond || 0;
       }
+      if (s.type === 'transport' && s.selectedCandidatePairId) pairId = s.selectedCandidatePairId;
     });
+    // The path the video takes: each end's candidate type (host, srflx, prflx, relay).
+    const pair = pairId && report.get(pairId);
+    if (pair) {
+      out.path = { local: report.get(pair.localCandidateId)?.candidateType, remote: report.get(pair.remoteCandidateId)?.candidateType };
+    }
     return out;
   }
 

@@ -313,7 +313,7 @@ async function main() {
     if (sceneSelect.value !== cameraScene) cameraScene = null;
     const { cols, rows, cone } = options;
     conn.connect({
-      scene: sceneSelect.value, width: options.width, height: options.height, fps: options.fps, token: options.token,
+      scene: sceneSelect.value, width: options.width, height: options.height, fps: options.fps, token: options.token, relay: options.relay,
       quilt: { cols, rows, cone_deg: cone },
     });
   };

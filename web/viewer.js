@@ -44,7 +44,7 @@ function connectFromPickers() {
   const [width, height] = sizeSelect.value.split('x').map(Number);
   const scene = sceneSelect.value;
   if (scene !== cameraScene) cameraScene = null; // new scene: reframe when its session arrives
-  conn.connect({ scene, width, height, fps: options.fps, token: options.token });
+  conn.connect({ scene, width, height, fps: options.fps, token: options.token, relay: options.relay });
 }
 
 async function main() {

@@ -338,3 +338,41 @@ pub async fn http_request(addr: std::net::SocketAddr, path: &str) -> (u16, Strin
     let status = out.split(' ').nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
     (status, out.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default())
 }
+
+/// A coturn on loopback with TURN REST authentication (`use-auth-secret`).
+pub struct Coturn {
+    child: std::process::Child,
+    pub port: u16,
+}
+
+impl Coturn {
+    /// Starts `turnserver` with `secret` on free loopback ports; returns once it listens.
+    pub fn start(secret: &str) -> Self {
+        let free_udp_port = || std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let port = free_udp_port();
+        let relay = free_udp_port().max(20_000);
+        let child = std::process::Command::new("turnserver")
+            .args(["-n", "--listening-ip", "127.0.0.1", "--relay-ip", "127.0.0.1", "--listening-port", &port.to_string()])
+            .args(["--min-port", &relay.to_string(), "--max-port", &(relay + 200).to_string()])
+            .args(["--realm", "nephele", "--use-auth-secret", "--static-auth-secret", secret])
+            .args(["--no-tls", "--no-dtls", "--no-cli", "--allow-loopback-peers", "--log-file", "stdout", "--simple-log"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("turnserver (Debian coturn; tests/run installs it)");
+        // Ready when its TCP listener answers (it opens UDP and TCP on the port together).
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(std::time::Instant::now() < deadline, "turnserver did not start on port {port}");
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        Self { child, port }
+    }
+}
+
+impl Drop for Coturn {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -204,9 +204,12 @@ impl Default for ConnLimits {
             header_timeout_ms: 10_000,
             hello_timeout_ms: 10_000,
             idle_timeout_ms: 60_000,
-            max_pending_joins_per_address: 4,
-            join_burst_per_address: 10,
-            joins_per_address_per_minute: 20,
+            // One address may be a classroom or an office behind one NAT: 30 people opening
+            // the page within seconds all get in. A flood from one address is still held to
+            // 40 and then one a second (and its pending joins time out after 30 s).
+            max_pending_joins_per_address: 32,
+            join_burst_per_address: 40,
+            joins_per_address_per_minute: 60,
             ws_buffer_bytes: 16 * 1024,
         }
     }
