@@ -6,9 +6,10 @@
 //     bookkeeping, getStats polling, automatic reconnection with backoff (1, 2, 4, … ≤ 10 s),
 //     and the window.nephele debug surface (exposeApi).
 //   * ensureCapturePermission(): the AR page's camera. Other pages never ask on their own:
-//     only where no connection can be made without it (Chromium offers loopback ICE
-//     candidates only to a page holding a capture grant, which matters on a machine whose
-//     sole interface is loopback) the page says so in words and asks when the person agrees.
+//     only where no connection can be made without it (Chromium offers a page without a
+//     capture grant only its default route's address, never loopback: a machine with no
+//     default route, or a page on 127.0.0.1) the page says so in words and asks when the
+//     person agrees.
 //   * fetchScenes(), readPageOptions(), describeError(): small helpers for the pages.
 
 import { checkJoin, fetchLimits } from './join.js';
@@ -223,11 +224,19 @@ export class Connection {
     if (this.state === 'closed') return;
     this.recordError(code, message);
     this.teardown();
-    // A page on 127.0.0.1 in a browser that hides loopback candidates from pages without a
-    // capture grant: the one case the grant helps (never once a connection has worked
-    // without it). Ask only when the person agrees.
-    if (CANDIDATE_CODES.has(code) && isLoopbackPage() && !captureAsked() && !this.everConnected) {
-      this.setBanner('No video connection: on this machine the browser shares its loopback address with a page only when the page may use a camera. Nephele never turns the camera on for this page or records it.', 'error',
+    // Without a capture grant Chromium offers a page only the address of its default route
+    // (and never loopback): on a machine with no default route (a lab network, a container)
+    // it offers nothing, and a page on 127.0.0.1 cannot be reached. The grant helps only
+    // there, and never once a connection has worked without it. Ask when the person agrees.
+    const hidden = code === 'no_candidates' || (CANDIDATE_CODES.has(code) && isLoopbackPage());
+    if (hidden && !this.everConnected && !(navigator.mediaDevices && navigator.mediaDevices.getUserMedia)) {
+      // Plain http:// from another machine: the page may not even ask.
+      this.setBanner('No video connection: this browser shares this machine\'s network addresses only with a page that may use a camera, and a page on plain http:// from another machine cannot ask. Open it over HTTPS (or as http://localhost on the server), or from a machine with a default route.', 'error');
+      this.setState('error');
+      return;
+    }
+    if (hidden && !captureAsked() && !this.everConnected) {
+      this.setBanner('No video connection: this browser shares this machine\'s network addresses with a page only when the page may use a camera (here it found no default route). Nephele never turns the camera on for this page or records it.', 'error',
         { label: 'Allow and connect', run: () => this.grantAndRetry() });
       this.setState('needs_grant');
       return;
