@@ -93,15 +93,23 @@ fn hub_with_turn(port: u16, secret: &str) -> HubConfig {
     HubConfig { ice: IceConfig::new(vec![url], TurnAuth::Secret { secret: secret.into(), ttl_s: 600 }).unwrap(), ..HubConfig::default() }
 }
 
-/// Relay only (a browser's `iceTransportPolicy: "relay"`): the client's only candidates are
-/// on the TURN server, logged into with the credential signaling minted for its session.
+/// A coturn sharing `turn_secret`, a server minting credentials from `minting_secret`, and
+/// a relay-only client (a browser's `iceTransportPolicy: "relay"`) trying to connect.
+async fn relay_only_client(turn_secret: &str, minting_secret: &str) -> (Coturn, web::LocalServer, anyhow::Result<StreamClient>) {
+    nephele_e2e::log_from_env();
+    let turn = Coturn::start(turn_secret);
+    let server = start(core_config(2), RtcConfig::loopback(), hub_with_turn(turn.port, minting_secret)).await;
+    let net = ClientNet { relay_only: true, ..ClientNet::default() };
+    let client = StreamClient::connect_with(&opts(&server.signal_url(), 96, 64, Receive::Decode), &net).await;
+    (turn, server, client)
+}
+
+/// The client's only candidates are on the TURN server, logged into with the credential
+/// signaling minted for its session.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_relay_only_client_streams_through_turn() {
-    nephele_e2e::log_from_env();
-    let turn = Coturn::start("north-sea");
-    let server = start(core_config(2), RtcConfig::loopback(), hub_with_turn(turn.port, "north-sea")).await;
-    let net = ClientNet { relay_only: true, ..ClientNet::default() };
-    let mut client = StreamClient::connect_with(&opts(&server.signal_url(), 96, 64, Receive::Decode), &net).await.expect("the client connects through TURN");
+    let (_turn, _server, client) = relay_only_client("north-sea", "north-sea").await;
+    let mut client = client.expect("the client connects through TURN");
     let frames = stream(&mut client, 40, 96, 64).await;
     let (local, remote) = client.selected_pair().await.expect("a candidate pair");
     println!("relayed: {frames} frames over {local:?} → {remote:?}");
@@ -114,13 +122,18 @@ async fn a_relay_only_client_streams_through_turn() {
 /// that no relay candidate could be gathered (not a silent 30 s timeout).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn turn_refusing_the_credentials_is_an_error_in_words() {
-    nephele_e2e::log_from_env();
-    let turn = Coturn::start("north-sea");
-    let server = start(core_config(2), RtcConfig::loopback(), hub_with_turn(turn.port, "wrong-secret")).await;
-    let net = ClientNet { relay_only: true, ..ClientNet::default() };
     let started = std::time::Instant::now();
-    let err = StreamClient::connect_with(&opts(&server.signal_url(), 96, 64, Receive::Decode), &net).await.err().expect("no relay, no stream");
-    let text = format!("{err:#}");
+    let (turn, _server, client) = relay_only_client("north-sea", "wrong-secret").await;
+    let text = format!("{:#}", client.err().expect("no relay, no stream"));
     assert!(text.contains("no TURN relay candidate") && text.contains(&format!("127.0.0.1:{}", turn.port)), "{text}");
     println!("refused after {:.1} s: {text}", started.elapsed().as_secs_f64());
+}
+
+/// Relay only against a server that offers no TURN server: refused in words at once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn relay_only_without_a_turn_server_is_an_error_in_words() {
+    let server = start(core_config(2), RtcConfig::loopback(), HubConfig::default()).await;
+    let net = ClientNet { relay_only: true, ..ClientNet::default() };
+    let err = StreamClient::connect_with(&opts(&server.signal_url(), 96, 64, Receive::Decode), &net).await.err().expect("no TURN, no relay");
+    assert!(format!("{err:#}").contains("relay only needs a TURN server"), "{err:#}");
 }

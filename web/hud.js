@@ -57,6 +57,8 @@ export function showBanner(el, banner) {
   if (banner.action) {
     const button = document.createElement('button');
     button.textContent = banner.action.label;
+    // The stage under it captures the pointer for orbiting; the button keeps its own.
+    button.addEventListener('pointerdown', (e) => e.stopPropagation());
     button.addEventListener('click', () => banner.action.run());
     el.append(' ', button);
   }

@@ -79,11 +79,6 @@ impl Default for HubConfig {
     }
 }
 
-/// Seconds since the Unix epoch (TURN REST credentials expire in wall-clock time).
-fn unix_now_s() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs())
-}
-
 /// One message for the IO edge to deliver.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Outgoing {
@@ -646,7 +641,7 @@ impl Hub {
             Outgoing::client(
                 conn,
                 ToClient::Joined {
-                    ice_servers: self.cfg.ice.servers_for(unix_now_s(), &format!("nephele-{session}")),
+                    ice_servers: self.cfg.ice.servers_now(&format!("nephele-{session}")),
                     session: session.clone(),
                     master: master_id,
                 },

@@ -101,6 +101,17 @@ async function run(context) {
     framesDecoded: end.framesDecoded, meanAbsDiff: Number(diff.toFixed(3)), width: size.width, height: size.height,
     presentedMatched: presented.matched, presentedP50Ms: Number(presented.p50.toFixed(1)), infoP50Ms: presented.info_p50 == null ? null : Number(presented.info_p50.toFixed(1)),
   });
+  // A banner's button (e.g. "Allow and connect") takes a click over the orbiting stage.
+  await page.evaluate(async () => {
+    const { showBanner } = await import('/hud.js');
+    // A banner of its own, beside the page's (which the connection re-renders), placed alike.
+    const el = document.getElementById('banner').cloneNode(false);
+    el.id = 'test-banner';
+    document.getElementById('banner').after(el);
+    showBanner(el, { text: 'test', kind: 'error', action: { label: 'Act', run() { window.__bannerClicked = true; } } });
+  });
+  await page.click('#test-banner button', { timeout: 5000 });
+  if (!(await page.evaluate(() => window.__bannerClicked))) throw new Error("the banner's button did not act on a click");
   result.viewerCaptureRequests = await captureRequests(page);
   if (result.viewerCaptureRequests !== 0) throw new Error(`the viewer asked for the camera ${result.viewerCaptureRequests} time(s)`);
   await page.close({ runBeforeUnload: false });

@@ -173,6 +173,9 @@ impl StreamClient {
             other => bail!("unexpected signaling message before joined: {other:?}"),
         };
 
+        if net.relay_only && !ice_servers.iter().flat_map(|s| &s.urls).any(|u| u.starts_with("turn:") || u.starts_with("turns:")) {
+            bail!("relay only needs a TURN server, and signaling offered none (the server has no turn: --ice-server)");
+        }
         let tweak = |s: &mut SettingEngine| {
             if let Some(f) = &net.settings {
                 f(s);

@@ -105,8 +105,7 @@ pub struct RtcApi {
 impl RtcApi {
     /// The ICE servers of this process for the session `id` (TURN credentials minted now).
     pub fn ice_servers_for(&self, id: &str) -> Vec<IceServer> {
-        let unix_now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        self.ice.servers_for(unix_now, id)
+        self.ice.servers_now(id)
     }
 
     /// A peer connection gathering through `servers`; `relay_only`: TURN relay candidates

@@ -158,6 +158,12 @@ impl IceConfig {
         self.urls.is_empty()
     }
 
+    /// [`IceConfig::servers_for`] now (TURN credentials expire in wall-clock time).
+    pub fn servers_now(&self, id: &str) -> Vec<IceServer> {
+        let unix_now_s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        self.servers_for(unix_now_s, id)
+    }
+
     /// The `iceServers` for one session at `unix_now_s`: the STUN URLs as one entry, the
     /// TURN URLs as another with the session's credentials (minted for `id` when from a
     /// secret). `id` names the session in the TURN server's logs; keep personal data out.
