@@ -137,7 +137,7 @@ async fn sigterm_on_a_worker_exits_0_after_its_tasks() {
     let nats = NatsServer::start();
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let health = format!("127.0.0.1:{port}");
-    let mut worker = spawn_worker_with(&nats, &["--health-listen", &health]);
+    let mut worker = spawn_worker_with(&nats, &["--metrics-listen", &health]);
     let sock: std::net::SocketAddr = health.parse().unwrap();
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {

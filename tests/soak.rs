@@ -163,7 +163,7 @@ async fn load(addr: &str) -> Option<Load> {
         master_sessions: status["masters"].as_array()?.iter().filter_map(|m| m["sessions"].as_u64()).sum(),
         users: gauge("nephele_users")?,
         tasks_in_flight: gauge("nephele_tasks_in_flight")?,
-        task_queue: gauge("nephele_task_queue_depth")?,
+        task_queue: gauge("nephele_task_queue_depth{farm=\"heavy\"}")? + gauge("nephele_task_queue_depth{farm=\"light\"}")?,
         session_series: metrics.lines().filter(|l| !l.starts_with('#') && l.contains("session=\"")).count() as u64,
     })
 }

@@ -310,7 +310,7 @@ async fn users_with_different_fps_each_get_their_own_poses() {
     for fps in ["8.0", "20.0", "40.0"] {
         assert!(metrics.lines().any(|l| l.starts_with("nephele_user_target_fps{") && l.ends_with(fps)), "no user at {fps} fps in:\n{metrics}");
     }
-    assert!(metrics.contains("nephele_batch_views_bucket") && metrics.contains("nephele_render_ms_count"), "{metrics}");
+    assert!(metrics.contains("nephele_batch_views_bucket") && metrics.contains("nephele_render_seconds_count"), "{metrics}");
     for (fps, run) in runs {
         let report = run.await.unwrap().unwrap();
         println!("{fps} fps: {report}");

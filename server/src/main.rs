@@ -10,10 +10,28 @@ fn main() -> anyhow::Result<()> {
     // Before any thread starts: one malloc arena keeps the resident set steady under churn.
     nephele_master::memory::use_one_arena();
     quiet_vulkan_loader();
+    forget_empty_settings();
+    let cli = nephele::cli::Cli::parse();
     // Warnings and our own notices by default; RUST_LOG says otherwise.
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(LOG_FILTER));
-    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
-    nephele::cli::run(nephele::cli::Cli::parse())
+    let logs = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    nephele::cli::lifecycle::use_json_logs(cli.log_format == nephele::cli::LogFormat::Json);
+    match cli.log_format {
+        nephele::cli::LogFormat::Text => logs.init(),
+        nephele::cli::LogFormat::Json => logs.json().flatten_event(true).with_current_span(false).init(),
+    }
+    nephele::cli::run(cli)
+}
+
+/// An empty `NEPHELE_…` variable means "not set" (as a compose file's `${VAR:-}` or an
+/// optional Kubernetes key leaves it), not an empty value for its flag to refuse.
+#[allow(unsafe_code)]
+fn forget_empty_settings() {
+    let empty: Vec<std::ffi::OsString> = std::env::vars_os().filter(|(k, v)| k.to_string_lossy().starts_with("NEPHELE_") && v.is_empty()).map(|(k, _)| k).collect();
+    for key in empty {
+        // SAFETY: called first thing in `main`, before any other thread exists.
+        unsafe { std::env::remove_var(key) };
+    }
 }
 
 /// On a headless machine (no login session) `XDG_RUNTIME_DIR` is unset, and probing Vulkan

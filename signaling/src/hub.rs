@@ -206,6 +206,10 @@ pub struct HubStats {
     pub connections_refused: u64,
     /// Connections without a role closed to make room for newer ones (the server's count).
     pub connections_evicted: u64,
+    /// Sessions paired since start.
+    pub sessions_started: u64,
+    /// Messages refused since start, by wire error code.
+    pub refused: BTreeMap<String, u64>,
 }
 
 #[derive(Debug)]
@@ -258,6 +262,8 @@ pub struct Hub {
     session_prefix: String,
     /// Set by [`Hub::drain`]: joins are refused.
     draining: bool,
+    /// Messages refused since start, by wire error code (for `/metrics`).
+    refused: BTreeMap<String, u64>,
 }
 
 type Res = Result<Vec<Outgoing>, SignalError>;
@@ -275,6 +281,7 @@ impl Hub {
             next_session: 1,
             session_prefix: "s".into(),
             draining: false,
+            refused: BTreeMap::new(),
         }
     }
 
@@ -354,6 +361,7 @@ impl Hub {
         result.unwrap_or_else(|err| {
             tracing::debug!(%conn, %err, "refused signaling message");
             let (code, message) = (err.code(), err.to_string());
+            *self.refused.entry(code.as_str().to_owned()).or_default() += 1;
             let msg = match self.peers.get(&conn) {
                 Some(Peer::Master(_)) => ToPeer::Master(ToMaster::Error { code, message }),
                 _ => ToPeer::Client(ToClient::Error { code, message }),
@@ -475,6 +483,8 @@ impl Hub {
             connections: 0,
             connections_refused: 0,
             connections_evicted: 0,
+            sessions_started: self.next_session - 1,
+            refused: self.refused.clone(),
         }
     }
 

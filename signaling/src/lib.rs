@@ -5,6 +5,7 @@
 //!   node, the replay client and the web page.
 //! - [`hub`]: the sans-IO state machine that pairs and routes.
 //! - [`server`]: the axum edge: websockets, `/status`, the heartbeat tick.
+//! - [`health`], [`metrics`]: `/healthz`, `/readyz` and `/metrics` as every role serves them.
 //!
 //! This crate knows nothing about rendering.
 
@@ -13,6 +14,7 @@ pub use nephele_protocol as protocol;
 
 pub mod health;
 pub mod hub;
+pub mod metrics;
 pub mod net;
 pub mod server;
 

@@ -153,7 +153,7 @@ async fn signaling_over_real_websockets() {
     assert_eq!(
         status,
         // Three websockets, and this GET's own connection.
-        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2,"connections":4,"connections_refused":0,"connections_evicted":0})
+        json!({"masters":[{"master":"farm-1","capacity":4,"sessions":2,"scenes":["cubes"],"free_rays_per_s":null,"saturated":false}],"clients":2,"sessions":2,"connections":4,"connections_refused":0,"connections_evicted":0,"sessions_started":2,"refused":{"bad_message":2,"too_large":1}})
     );
 
     // A client that goes away frees its slot and the master hears `leave`.

@@ -44,6 +44,61 @@ pub fn nephele() -> Command {
     Command::new(nephele_bin())
 }
 
+/// A validator from the Python environment `tests/run` installs (`NEPHELE_PY_TOOLS`, by
+/// default `target/py-tools`): `kubernetes-validate`, `check-jsonschema`, `python`. Missing,
+/// the test fails and says how to get it.
+pub fn py_tool(name: &str) -> PathBuf {
+    let dir = std::env::var_os("NEPHELE_PY_TOOLS").map_or_else(|| repo().join("target/py-tools"), PathBuf::from);
+    let tool = dir.join("bin").join(name);
+    assert!(
+        tool.exists(),
+        "{} is missing: tests/run installs it (python3 -m venv {dir} && {dir}/bin/pip install kubernetes-validate==1.37.0 check-jsonschema==0.39.0 prometheus-client==0.26.0)",
+        tool.display(),
+        dir = dir.display()
+    );
+    tool
+}
+
+/// Checks `text` with a strict OpenMetrics parser (Python's `prometheus_client`), and the
+/// conventions every Nephele role keeps: names start `nephele_`, counters end `_total`, no
+/// millisecond series, `nephele_build_info` for `role`. Returns the metric family names.
+pub fn check_openmetrics(text: &str, role: &str) -> Vec<String> {
+    let script = r#"
+import sys
+from prometheus_client.openmetrics.parser import text_string_to_metric_families
+for family in text_string_to_metric_families(sys.stdin.read()):
+    for sample in family.samples:
+        print(family.name, family.type, sample.name, sorted(sample.labels.items()), sample.value)
+"#;
+    let mut child = Command::new(py_tool("python"))
+        .args(["-c", script])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("python from the test tools");
+    std::io::Write::write_all(&mut child.stdin.take().unwrap(), text.as_bytes()).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "not valid OpenMetrics: {}\n{text}", String::from_utf8_lossy(&out.stderr));
+    let lines = String::from_utf8(out.stdout).unwrap();
+    let mut families = Vec::new();
+    for line in lines.lines() {
+        let mut parts = line.splitn(4, ' ');
+        let (family, kind, sample) = (parts.next().unwrap(), parts.next().unwrap(), parts.next().unwrap());
+        assert!(family.starts_with("nephele_"), "{family}: not a nephele_ series");
+        assert!(!family.ends_with("_ms") && !family.contains("_ms_"), "{family}: milliseconds (Prometheus wants seconds)");
+        if kind == "counter" {
+            assert!(sample.ends_with("_total") || sample.ends_with("_created"), "counter sample {sample} does not end in _total");
+        }
+        if families.last() != Some(&family.to_owned()) {
+            families.push(family.to_owned());
+        }
+    }
+    let build = format!("nephele_build info nephele_build_info [('role', '{role}'), ('version', '{}')] 1", env!("CARGO_PKG_VERSION"));
+    assert!(lines.lines().any(|l| l == build), "no {build:?} in\n{lines}");
+    families
+}
+
 /// Kills a child process when dropped, so a failing assertion leaves no server behind.
 pub struct Reap(pub Child);
 

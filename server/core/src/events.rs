@@ -18,9 +18,10 @@ pub enum CoreEvent {
     RenderScale { session: String, scale: f32 },
     /// A user fell behind its target time by more than the grace.
     Starved,
-    /// The queue and the farm after a scheduling pass: tasks waiting, tasks on workers and
-    /// their primary rays, and the farm's calibrated rays per second.
-    Queue { depth: usize, in_flight: usize, rays_in_flight: u64, farm_rays_per_s: f64 },
+    /// The queue and the farm after a scheduling pass: tasks waiting for each farm (heavy,
+    /// light), tasks on workers and their primary rays, and the farm's calibrated rays per
+    /// second.
+    Queue { waiting_heavy: usize, waiting_light: usize, in_flight: usize, rays_in_flight: u64, farm_rays_per_s: f64 },
     /// A render task was formed with this many views for this many users.
     TaskFormed { views: usize, users: usize },
     /// A render task was dropped because every user of it left.

@@ -735,7 +735,9 @@ impl MasterCore {
             self.next_heartbeat = Some(now + self.cfg.heartbeat_every);
         }
         let rays_in_flight = self.in_flight.values().map(|t| t.rays).sum();
-        self.events.push(CoreEvent::Queue { depth: self.queue.len(), in_flight: self.in_flight.len(), rays_in_flight, farm_rays_per_s: self.farm_rays_per_s() });
+        let waiting_heavy = self.queue.iter().filter(|(t, _)| t.class == TaskClass::Heavy).count();
+        let waiting_light = self.queue.len() - waiting_heavy;
+        self.events.push(CoreEvent::Queue { waiting_heavy, waiting_light, in_flight: self.in_flight.len(), rays_in_flight, farm_rays_per_s: self.farm_rays_per_s() });
     }
 
     /// Rays per second left after every admitted user at its lowest scale.

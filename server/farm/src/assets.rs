@@ -65,15 +65,29 @@ pub fn make_backend(choice: BackendChoice) -> Result<Box<dyn Backend>> {
         BackendChoice::Auto => match GpuBackend::new() {
             Ok(gpu) if gpu.ctx.info.device_type != nephele_renderer::gpu::DeviceType::Cpu => Ok(Box::new(gpu)),
             Ok(gpu) => {
-                eprintln!("note: the only GPU adapter is software ({}); rendering on the CPU, which is faster here (force with --backend gpu)", gpu.ctx.describe());
+                tracing::info!("the only GPU adapter is software ({}); rendering on the CPU, which is faster here (force with --backend gpu)", gpu.ctx.describe());
                 Ok(Box::new(FastCpuBackend))
             }
             Err(e) => {
-                eprintln!("warning: {e}; rendering on the CPU");
+                tracing::warn!("{e}; rendering on the CPU");
                 Ok(Box::new(FastCpuBackend))
             }
         },
     }
+}
+
+/// A render worker's `--backend gpu`: a hardware GPU, or an error in words. On a software
+/// adapter (lavapipe, a CPU device) a worker would take heavy tasks at a small fraction of
+/// the speed its farm is sized for; that is almost always a missing driver or device plugin.
+pub fn hardware_gpu_backend() -> Result<Box<dyn Backend>> {
+    let gpu = GpuBackend::new()?;
+    if gpu.ctx.info.device_type == nephele_renderer::gpu::DeviceType::Cpu {
+        bail!(
+            "--backend gpu found only a software adapter, {}: this machine or container sees no GPU (check the GPU driver, and in a container the NVIDIA container toolkit or the Kubernetes device plugin); run with --allow-software-gpu to render on it anyway, or --backend cpu",
+            gpu.ctx.describe()
+        );
+    }
+    Ok(Box::new(gpu))
 }
 
 /// Parses "W" "x" "H".

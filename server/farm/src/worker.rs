@@ -5,6 +5,7 @@
 //! own subject. While rendering it says `working` every 40 ms, so a master notices a dead
 //! or stopped worker within a few hundred milliseconds and re-issues the task elsewhere.
 //! A task its master cancels (every user left) stops at the renderer's next safe point.
+//! [`WorkerMetrics`] counts what it did for `/metrics`.
 
 
 use std::{
@@ -17,6 +18,16 @@ use anyhow::{Context, Result, bail};
 use async_nats::{HeaderMap, service::ServiceExt};
 use futures_util::StreamExt;
 use nephele_renderer::CancelFlag;
+use prometheus_client::{
+    encoding::EncodeLabelSet,
+    metrics::{
+        counter::Counter,
+        family::Family,
+        gauge::Gauge,
+        histogram::{Histogram, exponential_buckets},
+    },
+    registry::{Registry, Unit},
+};
 use tokio::sync::Semaphore;
 
 use crate::protocol::{
@@ -75,6 +86,54 @@ pub struct WorkerConfig {
     pub farm: Farm,
     /// Unique id; default `<farm>-<host pid>`.
     pub id: String,
+    /// Where it counts its work (registered in the caller's registry, or not at all).
+    pub metrics: Arc<WorkerMetrics>,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct OutcomeLabel {
+    /// `rendered`, `failed` (the renderer or the task's content), `refused` (unreadable,
+    /// too large, an asset it does not have) or `cancelled`.
+    pub outcome: &'static str,
+}
+
+/// A worker's series: tasks by outcome, render time, result bytes, what runs now.
+#[derive(Debug)]
+pub struct WorkerMetrics {
+    pub tasks: Family<OutcomeLabel, Counter>,
+    pub render_seconds: Histogram,
+    pub result_bytes: Counter,
+    pub tasks_running: Gauge,
+    pub rays_per_second: Gauge,
+}
+
+impl Default for WorkerMetrics {
+    fn default() -> Self {
+        Self {
+            tasks: Family::default(),
+            render_seconds: Histogram::new(exponential_buckets(0.001, 2.0, 14)),
+            result_bytes: Counter::default(),
+            tasks_running: Gauge::default(),
+            rays_per_second: Gauge::default(),
+        }
+    }
+}
+
+impl WorkerMetrics {
+    /// New series, registered in `registry` (as `nephele_worker_…`).
+    pub fn register(registry: &mut Registry) -> Arc<Self> {
+        let m = Arc::new(Self::default());
+        registry.register("worker_tasks", "Render tasks this worker answered, by outcome", m.tasks.clone());
+        registry.register_with_unit("worker_render", "Render time per task", Unit::Seconds, m.render_seconds.clone());
+        registry.register_with_unit("worker_result", "Rendered results sent to masters", Unit::Bytes, m.result_bytes.clone());
+        registry.register("worker_tasks_running", "Render tasks on this worker now", m.tasks_running.clone());
+        registry.register("worker_rays_per_second", "This worker's measured render throughput (at start), rays per second", m.rays_per_second.clone());
+        m
+    }
+
+    fn count(&self, outcome: &'static str) {
+        self.tasks.get_or_create(&OutcomeLabel { outcome }).inc();
+    }
 }
 
 /// Serves tasks until the process is stopped or NATS closes the connection for good.
@@ -99,6 +158,7 @@ pub async fn run_until(
     let client = connect(&cfg.nats_url, &cfg.auth, &cfg.id, |e| tracing::info!("NATS: {e}")).await?;
     let cat = Arc::clone(&catalog);
     let rays_per_s = tokio::task::spawn_blocking(move || calibrate(&cat)).await?;
+    cfg.metrics.rays_per_second.set(rays_per_s as i64);
     let announcement = WorkerAnnouncement {
         id: cfg.id.clone(),
         farm: cfg.farm,
@@ -159,9 +219,12 @@ pub async fn run_until(
             () = &mut stop => break,
         };
         let permit = Arc::clone(&slots).acquire_owned().await?;
-        let (client, catalog, id, running) = (client.clone(), Arc::clone(&catalog), cfg.id.clone(), Arc::clone(&running));
+        let (client, catalog, id, running, metrics) = (client.clone(), Arc::clone(&catalog), cfg.id.clone(), Arc::clone(&running), Arc::clone(&cfg.metrics));
         tokio::spawn(async move {
-            handle(client, catalog, &id, request.message, &running).await;
+            metrics.tasks_running.inc();
+            let outcome = handle(client, catalog, &id, request.message, &running, &metrics).await;
+            metrics.tasks_running.dec();
+            metrics.count(outcome);
             drop(permit);
         });
     }
@@ -203,8 +266,9 @@ impl Replier {
 }
 
 /// One task: accept, keep saying `working`, render, send the result (or an error).
-async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, message: async_nats::Message, running: &Running) {
-    let Some(reply) = message.reply.clone() else { return };
+/// Returns its outcome (an [`OutcomeLabel`]).
+async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, message: async_nats::Message, running: &Running, metrics: &WorkerMetrics) -> &'static str {
+    let Some(reply) = message.reply.clone() else { return "refused" };
     let replier = Replier { client: client.clone(), reply, worker: id.to_owned() };
     let parsed = if message.payload.len() > MAX_TASK_BYTES {
         Err(format!("task of {} bytes refused (limit {MAX_TASK_BYTES})", message.payload.len()))
@@ -216,14 +280,14 @@ async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, mes
         Err(e) => {
             tracing::warn!("{e}");
             replier.send("error", &[], e.into_bytes().into()).await;
-            return;
+            return "refused";
         }
     };
     let ids = vec![(TASK, task_header(msg.task.id)), (ATTEMPT, msg.attempt.to_string())];
     if !catalog.assets.contains_key(&msg.task.asset) {
         let why = format!("worker {id} has no asset {:?} (it serves {})", msg.task.asset, catalog.asset_names().join(", "));
         replier.send("error", &ids, why.into_bytes().into()).await;
-        return;
+        return "refused";
     }
     replier.send("accepted", &ids, bytes::Bytes::new()).await;
     let keepalive = {
@@ -242,12 +306,15 @@ async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, mes
     let cancel = CancelFlag::default();
     let key = replier.reply.to_string();
     running.lock().unwrap_or_else(|e| e.into_inner()).insert(key.clone(), cancel.clone());
+    let cancelled = cancel.clone();
     let result = tokio::task::spawn_blocking(move || render_task(&catalog, &task, &cancel)).await;
     running.lock().unwrap_or_else(|e| e.into_inner()).remove(&key);
     keepalive.abort();
-    match result.map_err(|e| e.to_string()).and_then(|r| r.frames.map(|f| (f, r.render_ms))) {
+    let outcome = match result.map_err(|e| e.to_string()).and_then(|r| r.frames.map(|f| (f, r.render_ms))) {
         Ok((frames, render_ms)) => {
+            metrics.render_seconds.observe(render_ms / 1e3);
             let (sizes, chunks) = result_chunks(&frames, with_depth);
+            metrics.result_bytes.inc_by(chunks.iter().map(|c| c.len() as u64).sum());
             let n = chunks.len();
             for (i, chunk) in chunks.into_iter().enumerate() {
                 let mut extra = ids.clone();
@@ -259,8 +326,13 @@ async fn handle(client: async_nats::Client, catalog: Arc<Catalog>, id: &str, mes
                 replier.send("chunk", &extra, chunk).await;
             }
             tracing::debug!(worker = id, ms = started.elapsed().as_secs_f64() * 1e3, "task done");
+            "rendered"
         }
-        Err(e) => replier.send("error", &ids, e.into_bytes().into()).await,
-    }
+        Err(e) => {
+            replier.send("error", &ids, e.into_bytes().into()).await;
+            if cancelled.is_cancelled() { "cancelled" } else { "failed" }
+        }
+    };
     let _ = client.flush().await;
+    outcome
 }

@@ -58,7 +58,7 @@ pub async fn spawn_local_until(
     cfg.token = Some(master_token);
     let signaling = nephele_signaling::SignalState::new(hub);
     signaling.spawn_tick_task();
-    let metrics = Arc::new(MasterMetrics::new());
+    let metrics = Arc::new(MasterMetrics::serving(&signaling));
     let app = router(signaling.clone(), Arc::clone(&catalog), Arc::clone(&metrics)).merge(life.health.routes());
     let gate = signaling.gate();
     tokio::spawn(async move {
@@ -129,22 +129,34 @@ pub fn router(signaling: nephele_signaling::SignalState, catalog: Arc<Catalog>, 
     let gate = signaling.clone();
     with_pages(nephele_signaling::app(signaling))
         .route("/scenes", get(move || async move { Json(scenes.clone()) }))
-        .route(
-            "/metrics",
-            get(move |request: axum::extract::Request| async move {
-                if gate.operator_allowed(&request) {
-                    metrics_page(&metrics)
-                } else {
-                    (StatusCode::UNAUTHORIZED, "operator pages need the operator token (Authorization: Bearer …) or a loopback address\n").into_response()
-                }
-            }),
-        )
+        .route("/metrics", operator_metrics(gate, move || metrics.encode()))
         .fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
 }
 
-/// `nephele signal` alone: signaling's routes, the pages, and `/scenes` as the registered
-/// masters offer them (the first master's first scene is the default).
+/// `GET /metrics` on a public listener: for the operator only (their token, or loopback).
+fn operator_metrics(gate: nephele_signaling::SignalState, scrape: impl Fn() -> String + Clone + Send + Sync + 'static) -> axum::routing::MethodRouter {
+    get(move |request: axum::extract::Request| async move {
+        if gate.operator_allowed(&request) {
+            nephele_signaling::metrics::response(scrape())
+        } else {
+            (StatusCode::UNAUTHORIZED, "operator pages need the operator token (Authorization: Bearer …) or a loopback address\n").into_response()
+        }
+    })
+}
+
+/// Signaling's metrics as OpenMetrics text (`nephele signal`).
+pub fn signaling_metrics(signaling: &nephele_signaling::SignalState) -> impl Fn() -> String + Clone + Send + Sync + 'static {
+    let mut registry = nephele_signaling::metrics::registry("signal");
+    nephele_signaling::metrics::register_signaling(&mut registry, signaling);
+    let registry = Arc::new(registry);
+    move || nephele_signaling::metrics::encode_text(&registry)
+}
+
+/// `nephele signal` alone: signaling's routes, the pages, `/metrics` (operator only), and
+/// `/scenes` as the registered masters offer them (the first master's first scene is the
+/// default).
 pub fn signaling_router(signaling: nephele_signaling::SignalState) -> Router {
+    let metrics = operator_metrics(signaling.clone(), signaling_metrics(&signaling));
     let state = signaling.clone();
     let scenes = move || {
         let stats = state.stats();
@@ -154,7 +166,7 @@ pub fn signaling_router(signaling: nephele_signaling::SignalState) -> Router {
         names.dedup();
         Json(serde_json::json!({ "scenes": names, "default": default }))
     };
-    with_pages(nephele_signaling::app(signaling)).route("/scenes", get(move || std::future::ready(scenes()))).fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
+    with_pages(nephele_signaling::app(signaling)).route("/scenes", get(move || std::future::ready(scenes()))).route("/metrics", metrics).fallback(|| async { (StatusCode::NOT_FOUND, "not found\n") })
 }
 
 /// Browser libraries from npm, bundled by `server/build.rs` (or a script that says what to
@@ -183,13 +195,6 @@ fn with_pages(mut router: Router) -> Router {
     router.route("/", get(move || async move { page(mime, index) }))
 }
 
-fn metrics_page(metrics: &MasterMetrics) -> Response {
-    let mut r = metrics.encode().into_response();
-    let mime = "application/openmetrics-text; version=1.0.0; charset=utf-8";
-    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(mime));
-    r
-}
-
 fn page(mime: &'static str, body: &'static str) -> Response {
     let mut r = body.into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(mime));
@@ -197,9 +202,9 @@ fn page(mime: &'static str, body: &'static str) -> Response {
     r
 }
 
-/// `GET /metrics`, `/healthz` and `/readyz` on `listener` (`nephele master --metrics-listen`),
-/// until the process ends.
-pub async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<MasterMetrics>, health: nephele_signaling::Health) -> std::io::Result<()> {
-    let app = Router::new().route("/metrics", get(move || std::future::ready(metrics.encode()))).merge(health.routes());
+/// `GET /metrics`, `/healthz` and `/readyz` on `listener` (`--metrics-listen` of master,
+/// signal and worker: an internal address, no token), until the process ends.
+pub async fn serve_metrics(listener: tokio::net::TcpListener, scrape: impl Fn() -> String + Clone + Send + Sync + 'static, health: nephele_signaling::Health) -> std::io::Result<()> {
+    let app = Router::new().route("/metrics", get(move || std::future::ready(nephele_signaling::metrics::response(scrape())))).merge(health.routes());
     axum::serve(listener, app).await
 }

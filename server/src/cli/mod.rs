@@ -18,8 +18,18 @@ use clap::{Parser, Subcommand};
 #[derive(Parser)]
 #[command(name = "nephele", version, about = "Cloud renderer for neural opacity light fields (i-NOLF)")]
 pub struct Cli {
+    /// How log lines are written to stderr: `text` for people, `json` (one object per line)
+    /// for log shippers.
+    #[arg(long, global = true, value_enum, default_value = "text", env = "NEPHELE_LOG_FORMAT")]
+    pub log_format: LogFormat,
     #[command(subcommand)]
     pub command: Option<Command>,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LogFormat {
+    Text,
+    Json,
 }
 
 #[derive(Subcommand)]
@@ -33,6 +43,9 @@ pub enum Command {
     Signal(serve::SignalArgs),
     /// A render worker of the NATS farm: renders tasks for masters started with --nats.
     Worker(serve::WorkerArgs),
+    /// Ask a role's health endpoint (exit 0 when it answers 2xx): a container HEALTHCHECK
+    /// without curl in the image.
+    Health(lifecycle::HealthArgs),
     /// Render one view of an asset to PNG.
     Render(render::RenderArgs),
     /// Build a procedural asset and write it as .nolf.
@@ -73,6 +86,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Master(args) => serve::master(args),
         Command::Signal(args) => serve::signal(args),
         Command::Worker(args) => serve::worker(args),
+        Command::Health(args) => lifecycle::health(&args),
         Command::Render(args) => render::render(args),
         Command::Generate(args) => render::generate(args),
         Command::Info(args) => render::info(args),

@@ -21,7 +21,7 @@ use nephele_protocol::ice::{IceConfig, IceUrl, TurnAuth};
 use nephele_rtc::{RtcConfig, UdpPorts};
 use nephele_signaling::Health;
 
-use super::lifecycle::{DrainArgs, stop_signal};
+use super::lifecycle::{DrainArgs, say, stop_signal};
 use nephele_master::Lifecycle;
 
 /// What a master serves and how it schedules.
@@ -45,8 +45,9 @@ pub struct MasterOptions {
     /// Offer loopback ICE candidates only (a browser on this machine, tests).
     #[arg(long)]
     pub loopback_only: bool,
-    /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT).
-    #[arg(long)]
+    /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT, or in a
+    /// container whose UDP port is forwarded from the host).
+    #[arg(long, env = "NEPHELE_PUBLIC_IP", value_delimiter = ',')]
     pub public_ip: Vec<String>,
     /// UDP for the media: `N` carries every session over the one port N (open just that
     /// in a firewall or a Kubernetes Service); `MIN-MAX` gives each session its own port
@@ -136,7 +137,7 @@ impl MasterOptions {
     fn batching(&self) -> bool {
         match self.batching {
             Some(b) => {
-                eprintln!("warning: `--batching {b}` is deprecated; batching is on by default and `--no-batching` turns it off");
+                say("warn", &format!("`--batching {b}` is deprecated; batching is on by default and `--no-batching` turns it off"));
                 b && !self.no_batching
             }
             None => !self.no_batching,
@@ -152,7 +153,7 @@ impl MasterOptions {
         let backend = if nats.is_some() { Box::new(nephele_renderer::FastCpuBackend) } else { make_backend(self.backend)? };
         let settings = self.knobs.settings()?;
         settings.validate().map_err(anyhow::Error::msg)?;
-        eprintln!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name());
+        say("info", &format!("preparing {} scene(s) on {} ...", self.scenes.len(), backend.name()));
         let catalog = Arc::new(Catalog::load(&self.scenes, backend.as_ref(), settings)?);
         let cfg = MasterConfig {
             name: name.into(),
@@ -357,6 +358,11 @@ pub struct SignalArgs {
     /// answers loopback addresses only.
     #[arg(long, env = "NEPHELE_OPERATOR_TOKEN", hide_env_values = true)]
     pub operator_token: Option<String>,
+    /// Also serve GET /metrics, /healthz and /readyz without a token on this (internal)
+    /// address, for Prometheus and probes; `--listen` serves them too, /metrics for the
+    /// operator only.
+    #[arg(long)]
+    pub metrics_listen: Option<String>,
     #[command(flatten)]
     pub limits: LimitArgs,
     #[command(flatten)]
@@ -388,7 +394,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         }
         server.signaling.close_all(std::time::Duration::from_secs(1)).await;
         drained?;
-        eprintln!("stopped");
+        say("info", "stopped");
         Ok(())
     })
 }
@@ -403,10 +409,11 @@ pub fn master(args: MasterArgs) -> Result<()> {
             let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
             println!("metrics on http://{}/metrics (health: /healthz, /readyz)", listener.local_addr()?);
             // Bind it to loopback or a private network: it has no token of its own.
-            tokio::spawn(web::serve_metrics(listener, Arc::clone(&metrics), life.health.clone()));
+            let m = Arc::clone(&metrics);
+            tokio::spawn(web::serve_metrics(listener, move || m.encode(), life.health.clone()));
         }
         master::run_with(args.signal, cfg, catalog, metrics, life).await?;
-        eprintln!("stopped");
+        say("info", "stopped");
         Ok(())
     })
 }
@@ -426,6 +433,11 @@ pub fn signal(args: SignalArgs) -> Result<()> {
         state.spawn_tick_task();
         let gate = state.gate();
         let health = Health::default();
+        if let Some(listen) = &args.metrics_listen {
+            let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
+            println!("metrics on http://{}/metrics (health: /healthz, /readyz)", listener.local_addr()?);
+            tokio::spawn(web::serve_metrics(listener, web::signaling_metrics(&state), health.clone()));
+        }
         let app = web::signaling_router(state.clone()).merge(health.routes());
         let server = tokio::spawn(nephele_signaling::serve_limited(listener, app, gate));
         tokio::select! {
@@ -442,7 +454,7 @@ pub fn signal(args: SignalArgs) -> Result<()> {
         }
         let connecting = state.connecting();
         state.close_all(std::time::Duration::from_secs(1)).await;
-        eprintln!("stopped ({connecting} session(s) still connecting)");
+        say("info", &format!("stopped ({connecting} session(s) still connecting)"));
         Ok(())
     })
 }
@@ -460,13 +472,18 @@ pub struct WorkerArgs {
     pub scenes: Vec<String>,
     #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendChoice,
+    /// With `--backend gpu`, render on a software Vulkan adapter (lavapipe) rather than
+    /// refuse to start without a hardware GPU.
+    #[arg(long)]
+    pub allow_software_gpu: bool,
     #[command(flatten)]
     pub knobs: nephele_farm::assets::RenderKnobs,
     #[command(flatten)]
     pub nats: NatsArgs,
-    /// Serve GET /healthz and /readyz (NATS connected and taking tasks) on this address.
+    /// Serve GET /metrics, /healthz and /readyz (NATS connected and taking tasks) on this
+    /// address.
     #[arg(long)]
-    pub health_listen: Option<String>,
+    pub metrics_listen: Option<String>,
     #[command(flatten)]
     pub drain: DrainArgs,
 }
@@ -475,21 +492,26 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
     let Some(url) = args.nats.nats.clone() else { anyhow::bail!("a worker needs --nats URL (the farm's NATS server)") };
     let settings = args.knobs.settings()?;
     settings.validate().map_err(anyhow::Error::msg)?;
-    let backend = make_backend(args.backend)?;
-    eprintln!("preparing {} scene(s) on {} ...", args.scenes.len(), backend.name());
+    let backend = match args.backend {
+        BackendChoice::Gpu if !args.allow_software_gpu => nephele_farm::assets::hardware_gpu_backend()?,
+        choice => make_backend(choice)?,
+    };
+    say("info", &format!("preparing {} scene(s) on {} ...", args.scenes.len(), backend.name()));
     // A missing or corrupt asset stops the worker here, in words, before it takes any task.
     let catalog = Arc::new(Catalog::load(&args.scenes, backend.as_ref(), settings).context("this worker cannot serve its scenes")?);
     let host = std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_owned()).unwrap_or_else(|_| "host".into());
     let host: String = host.chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-').take(32).collect();
     let id = args.id.clone().unwrap_or_else(|| format!("{}-{host}-{}", args.farm.as_str(), std::process::id()));
-    let cfg = WorkerConfig { nats_url: url, auth: args.nats.auth()?, farm: args.farm, id };
+    let mut registry = nephele_signaling::metrics::registry("worker");
+    let metrics = nephele_farm::worker::WorkerMetrics::register(&mut registry);
+    let cfg = WorkerConfig { nats_url: url, auth: args.nats.auth()?, farm: args.farm, id, metrics };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let health = Health::starting(&[("nats", "not serving tasks yet")]);
-        if let Some(listen) = &args.health_listen {
+        if let Some(listen) = &args.metrics_listen {
             let listener = tokio::net::TcpListener::bind(listen).await.with_context(|| format!("binding {listen}"))?;
-            println!("health on http://{}/healthz and /readyz", listener.local_addr()?);
-            let app: axum::Router = health.routes();
-            tokio::spawn(async move { axum::serve(listener, app).await });
+            println!("metrics on http://{}/metrics (health: /healthz, /readyz)", listener.local_addr()?);
+            let registry = Arc::new(registry);
+            tokio::spawn(web::serve_metrics(listener, move || nephele_signaling::metrics::encode_text(&registry), health.clone()));
         }
         let ready = |why: Option<&str>| match why {
             None => health.pass("nats"),

@@ -367,6 +367,25 @@ pub enum ErrorCode {
     RateLimited,
 }
 
+impl ErrorCode {
+    /// The code as it travels (snake_case), also the `code` label of refusal metrics.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::BadMessage => "bad_message",
+            Self::TooLarge => "too_large",
+            Self::Unauthorized => "unauthorized",
+            Self::NoCapacity => "no_capacity",
+            Self::BadRequest => "bad_request",
+            Self::MasterLost => "master_lost",
+            Self::UnknownScene => "unknown_scene",
+            Self::Rejected => "rejected",
+            Self::WrongRole => "wrong_role",
+            Self::NotJoined => "not_joined",
+            Self::RateLimited => "rate_limited",
+        }
+    }
+}
+
 /// A message to either kind of peer; serializes exactly like the inner message.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(untagged)]

@@ -471,8 +471,38 @@ fn silent_master_is_dropped_and_its_clients_told() {
             connections: 0,
             connections_refused: 0,
             connections_evicted: 0,
+            sessions_started: 3,
+            refused: Default::default(),
         }
     );
+}
+
+#[test]
+fn refusals_are_counted_by_their_wire_code() {
+    let (mut hub, t0) = hub_with(Some("secret"));
+    hub.connect(ConnId(1), t0);
+    hub.connect(ConnId(2), t0);
+    let mut out = Vec::new();
+    for text in ["not json", "{\"type\":\"nonsense\"}"] {
+        out.extend(hub.handle_text(ConnId(1), text, t0));
+    }
+    // A join without the token: unauthorized.
+    out.extend(send(&mut hub, 2, join_json(), t0));
+    let mut expected = std::collections::BTreeMap::new();
+    for (_, msg) in json_of(&out) {
+        *expected.entry(msg["code"].as_str().unwrap().to_owned()).or_insert(0u64) += 1;
+    }
+    assert_eq!(expected.get("bad_message"), Some(&2), "{expected:?}");
+    assert_eq!(expected.get("unauthorized"), Some(&1), "{expected:?}");
+    assert_eq!(hub.stats().refused, expected);
+}
+
+#[test]
+fn error_codes_name_themselves_as_they_travel() {
+    use crate::ErrorCode::*;
+    for code in [BadMessage, TooLarge, Unauthorized, NoCapacity, BadRequest, MasterLost, UnknownScene, Rejected, WrongRole, NotJoined, RateLimited] {
+        assert_eq!(json!(code), json!(code.as_str()));
+    }
 }
 
 #[test]
