@@ -426,3 +426,34 @@ fn a_gpu_worker_refuses_a_software_adapter() {
     let (ok, said) = run(&["--allow-software-gpu"]);
     assert!(!ok && said.contains("cannot reach NATS"), "with --allow-software-gpu it should get as far as NATS: {said}");
 }
+
+/// Every `nephele` command line in docs/deployment.md's shell blocks (the fresh-VM guide's
+/// systemd unit, the TURN example, `docker run`) uses real commands and flags.
+#[test]
+fn the_deployment_guide_gives_real_commands() {
+    let guide = read("docs/deployment.md");
+    let mut in_code = false;
+    let mut lines = guide.lines().peekable();
+    let mut checked = 0;
+    let mut help = Help::new();
+    while let Some(line) = lines.next() {
+        if line.starts_with("```") {
+            in_code = !in_code;
+            continue;
+        }
+        // Where "nephele <role>" starts (after a space or the path's slash).
+        let Some(at) = ["serve", "signal", "master", "worker"].iter().find_map(|role| line.find(&format!("nephele {role} ")).filter(|&i| i > 0 && matches!(&line[i - 1..i], " " | "/"))) else { continue };
+        if !in_code {
+            continue;
+        }
+        // The command with its continuation lines.
+        let mut command = line[at..].to_owned();
+        while command.trim_end().ends_with('\\') {
+            command = format!("{} {}", command.trim_end().trim_end_matches('\\'), lines.next().unwrap_or_default());
+        }
+        let args: Vec<String> = command.split_whitespace().skip(1).map(|a| a.trim_matches(['"', '\'']).to_owned()).collect();
+        help.check(&args, &format!("docs/deployment.md: {}", line.trim()));
+        checked += 1;
+    }
+    assert!(checked >= 3, "found only {checked} nephele command lines in the guide");
+}

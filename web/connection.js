@@ -203,6 +203,7 @@ export class Connection {
   // Close everything of the current attempt (telling signaling we leave, if we joined).
   teardown() {
     this.gen++;
+    this.sessionText = null;
     this.presented.reset();
     clearTimeout(this.retryTimer);
     clearTimeout(this.disconnectTimer);
@@ -476,6 +477,10 @@ export class Connection {
       if (Number.isFinite(msg.t_client_ms)) this.latencies.push([now, now - msg.t_client_ms]);
       this.presented.addInfo(msg);
     } else if (msg.type === 'session') {
+      // The server repeats it until our first pose reaches it (the channel drops what it
+      // loses): a copy of the one we have changes nothing.
+      if (data === this.sessionText) return;
+      this.sessionText = data;
       this.session = msg;
       this.onSession?.(msg);
     } else if (msg.type === 'error') {

@@ -53,6 +53,9 @@ pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(30);
 pub const HEARTBEAT_EVERY: Duration = Duration::from_millis(nephele_limits::MASTER_HEARTBEAT_EVERY_MS);
 /// A camera that moved within this time counts as moving for the fair scale.
 pub const ACTIVE_WINDOW: Duration = Duration::from_secs(1);
+/// How often an unanswered `session` message is sent again (it travels on the unreliable
+/// pose channel; the client's first pose answers it).
+pub const HELLO_REPEAT: Duration = Duration::from_millis(250);
 
 /// What the core knows of a scene (not its pixels: those live with the workers): one
 /// object, or several placed in one world and composed by depth.
@@ -270,6 +273,10 @@ struct User {
     frames: VecDeque<FrameInFlight>,
     /// Currently counted as starved (for the starvation-event metric).
     starved: bool,
+    /// When the `session` message goes out again: the pose channel is unreliable (a lost
+    /// message is never resent), so it repeats every [`HELLO_REPEAT`] until the client's
+    /// first pose shows it arrived. `None`: not sent yet, or answered.
+    hello_again: Option<Instant>,
 }
 
 impl User {
@@ -394,7 +401,7 @@ impl MasterCore {
                     u.session.on_picture_loss(now);
                 }
             }
-            Input::ChannelOpen { session } => self.hello(&session),
+            Input::ChannelOpen { session } => self.hello(&session, now),
             Input::Pose { session, bytes } => self.pose(&session, &bytes, now),
             Input::ChannelMisuse { session, message } => {
                 if self.users.contains_key(&session) {
@@ -481,6 +488,9 @@ impl MasterCore {
         }
         let worker_free = self.free_worker().is_some() && self.queue.is_empty();
         for u in self.users.values() {
+            if let Some(hello) = u.hello_again {
+                t = t.min(hello);
+            }
             if !u.connected {
                 t = t.min(u.joined_at + self.cfg.connect_timeout);
             } else if worker_free
@@ -525,6 +535,7 @@ impl MasterCore {
                     last_parts: Vec::new(),
                     frames: VecDeque::new(),
                     starved: false,
+                    hello_again: None,
                     req: req.clone(),
                 };
                 self.events.push(CoreEvent::UserAdmitted { session: req.session.clone(), target_fps: f64::from(req.spec.fps), scale });
@@ -637,8 +648,10 @@ impl MasterCore {
 
     // ---- sessions ----
 
-    fn hello(&mut self, session: &str) {
-        let Some(u) = self.users.get(session) else { return };
+    fn hello(&mut self, session: &str, now: Instant) {
+        let Some(u) = self.users.get_mut(session) else { return };
+        u.hello_again = Some(now + HELLO_REPEAT);
+        let u = &self.users[session];
         let Some(scene) = self.scenes.get(&u.req.spec.scene) else { return };
         let msg = ToViewer::Session {
             scene: scene.name.clone(),
@@ -656,6 +669,8 @@ impl MasterCore {
 
     fn pose(&mut self, session: &str, bytes: &[u8], now: Instant) {
         let Some(u) = self.users.get_mut(session) else { return };
+        // A pose: the client has its `session` message.
+        u.hello_again = None;
         let was_waiting = u.session.wants_frame() || !u.frames.is_empty();
         match u.session.on_pose(bytes, now) {
             Ok(true) if !was_waiting => u.clock.waiting_since = Some(now),
@@ -717,6 +732,11 @@ impl MasterCore {
         for s in late {
             let secs = self.cfg.connect_timeout.as_secs();
             self.drop_user(&s, &format!("the peer did not connect within {secs} s"), true);
+        }
+        // `session` messages not yet answered by a pose go out again.
+        let unanswered: Vec<String> = self.users.values().filter(|u| u.hello_again.is_some_and(|t| now >= t)).map(|u| u.req.session.clone()).collect();
+        for s in unanswered {
+            self.hello(&s, now);
         }
         self.update_scales(now);
         self.count_starvation(now);

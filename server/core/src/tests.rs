@@ -58,6 +58,8 @@ struct Delivered {
     frames: Vec<(Instant, nephele_wire::FrameInfo)>,
     errors: Vec<String>,
     notices: Vec<String>,
+    /// `session` messages sent.
+    hellos: usize,
 }
 
 struct Sim {
@@ -177,7 +179,7 @@ impl Sim {
                         ToViewer::Frame(info) => d.frames.push((self.now, info)),
                         ToViewer::Error { code, message } => d.errors.push(format!("{code}: {message}")),
                         ToViewer::Notice { code, message } => d.notices.push(format!("{code}: {message}")),
-                        ToViewer::Session { .. } => {}
+                        ToViewer::Session { .. } => d.hellos += 1,
                     }
                 }
                 Output::Render { worker, task } => {
@@ -759,4 +761,22 @@ fn draining_ends_every_session_in_words_and_refuses_joins() {
     // Renders in flight when it began come back (or are cancelled), then nothing is left.
     sim.run_until(1000);
     assert!(sim.core.is_idle());
+}
+
+#[test]
+fn the_session_message_repeats_until_the_first_pose_answers_it() {
+    // The pose channel drops what it loses, the `session` message too: it goes out again
+    // every HELLO_REPEAT until a pose shows the client has it.
+    let mut sim = Sim::new(fixed(8, true, Admission::Open), 2e6, 2.0);
+    assert!(sim.join("a", "lego", 320, 240, 25));
+    sim.users.get_mut("a").unwrap().sending = false;
+    sim.run_until(1000);
+    let unanswered = sim.out["a"].hellos;
+    assert!((4..=5).contains(&unanswered), "{unanswered} session messages in 1 s without a pose (one at open, then every 250 ms)");
+    sim.users.get_mut("a").unwrap().sending = true;
+    sim.run_until(1100);
+    let answered = sim.out["a"].hellos;
+    sim.run_until(3000);
+    assert_eq!(sim.out["a"].hellos, answered, "a session message after the client posed");
+    assert!(!sim.out["a"].frames.is_empty(), "the user streams");
 }
