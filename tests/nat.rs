@@ -333,6 +333,9 @@ fn across_a_nat_direct_and_relayed_thirty_on_one_port_and_a_graceful_stop() {
     let mut cmd = Command::new("ip");
     cmd.args(["netns", "exec", &net.server]).arg(nephele_bin());
     cmd.args(["serve", "--listen", &format!("{}:8080", net.server_ip), "--scene", &scene, "--backend", "cpu", "--render-scale", "1", "--admission", "open"]);
+    // `--public-ip` as an operator gives it (here the server's own address): with the one
+    // muxed port, webrtc's 1:1 mapping would make duplicate candidates that close the port.
+    cmd.args(["--public-ip", &net.server_ip.to_string()]);
     cmd.args(["--capacity", "40", "--rtc-port", &MEDIA_PORT.to_string(), "--ice-server", &format!("turn:{}:{TURN_PORT}?transport=udp", net.server_ip), "--drain-seconds", "5"]);
     cmd.env("NEPHELE_TURN_SECRET", TURN_SECRET);
     let (mut server, addr) = spawn_serve(cmd, &log);
@@ -348,11 +351,14 @@ fn across_a_nat_direct_and_relayed_thirty_on_one_port_and_a_graceful_stop() {
     let (frames, local, remote) = replay_once(&net, url.clone(), true);
     println!("replay, relay only: {frames} frames over {local} → {remote}");
     assert!(frames >= 30 && local.starts_with("relay"), "{frames} frames over {local} → {remote}");
+    // The master's end is its own port, never a relay of its own (it gathers with STUN only).
+    assert!(remote.starts_with("host") && remote.ends_with(&media), "{local} → {remote}");
 
     // Chromium, no camera permission, directly and through TURN.
     for mode in ["direct", "relay"] {
         let report = chromium(&net, &page, mode);
         println!("Chromium, {mode}: {report}");
+        assert_eq!(report["path"]["remote"], "host", "the master's end of the pair: {report}");
     }
 
     // 30 clients behind the one NAT at once, then SIGTERM while they stream. They connect

@@ -530,7 +530,7 @@ async fn peer_loop(
     to_signal: mpsc::UnboundedSender<ToSignal>,
 ) {
     let (ev_tx, mut peer_events) = mpsc::channel::<PeerEvent>(256);
-    let peer = match WebrtcPeer::new(&api, &session, ev_tx).await {
+    let peer = match WebrtcPeer::new(&api, ev_tx).await {
         Ok(p) => p,
         Err(e) => {
             let _ = events.send(Event::Peer(session, PeerEvent::Closed(format!("cannot create a peer connection: {e:#}"))));

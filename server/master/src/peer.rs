@@ -68,15 +68,19 @@ pub trait MasterPeer: Send + Sync + 'static {
 /// [`MasterPeer`] on the `webrtc` crate.
 pub struct WebrtcPeer {
     pc: Arc<RTCPeerConnection>,
+    rtc: Arc<RtcApi>,
+    advertised: Arc<std::sync::Mutex<std::collections::HashSet<String>>>,
     track: Arc<TrackLocalStaticSample>,
     channel: Arc<Mutex<Option<Arc<RTCDataChannel>>>>,
 }
 
 impl WebrtcPeer {
-    /// A new peer connection for `session` with its H.264 track, gathering through the
-    /// process's ICE servers; events go to `events`.
-    pub async fn new(rtc: &RtcApi, session: &str, events: mpsc::Sender<PeerEvent>) -> Result<Self> {
-        let pc = Arc::new(rtc.peer_connection(&rtc.ice_servers_for(&format!("nephele-master-{session}")), false).await?);
+    /// A new peer connection with its H.264 track, gathering through the process's STUN
+    /// servers ([`RtcApi::master_ice_servers`]); events go to `events`.
+    pub async fn new(rtc: &Arc<RtcApi>, events: mpsc::Sender<PeerEvent>) -> Result<Self> {
+        let pc = Arc::new(rtc.peer_connection(&rtc.master_ice_servers(), false).await?);
+        // Candidates as peers should see them (the public address on a muxed port), once.
+        let advertised: Arc<std::sync::Mutex<std::collections::HashSet<String>>> = Arc::default();
         let track = Arc::new(TrackLocalStaticSample::new(h264_codec().capability, "video".into(), "nephele".into()));
         let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await.context("adding the video track")?;
 
@@ -96,12 +100,16 @@ impl WebrtcPeer {
         });
 
         let tx = events.clone();
+        let (rtc_c, seen_c) = (Arc::clone(rtc), Arc::clone(&advertised));
         pc.on_ice_candidate(Box::new(move |candidate| {
-            let tx = tx.clone();
+            let (tx, rtc, seen) = (tx.clone(), Arc::clone(&rtc_c), Arc::clone(&seen_c));
             Box::pin(async move {
                 let Some(c) = candidate else { return };
                 match c.to_json() {
-                    Ok(init) => {
+                    Ok(mut init) => {
+                        let line = rtc.advertised(&init.candidate, &mut seen.lock().unwrap_or_else(|e| e.into_inner()));
+                        let Some(line) = line else { return };
+                        init.candidate = line;
                         let _ = tx.send(PeerEvent::LocalIce(candidate_json(&init))).await;
                     }
                     Err(e) => tracing::warn!("cannot serialise a local candidate: {e}"),
@@ -167,7 +175,7 @@ impl WebrtcPeer {
                 *slot.lock().await = Some(dc);
             })
         }));
-        Ok(Self { pc, track, channel })
+        Ok(Self { pc, rtc: Arc::clone(rtc), advertised, track, channel })
     }
 }
 
@@ -178,7 +186,7 @@ impl MasterPeer for WebrtcPeer {
         let answer = self.pc.create_answer(None).await.context("cannot create an answer")?;
         self.pc.set_local_description(answer).await.context("cannot apply our answer")?;
         let local = self.pc.local_description().await.context("no local description after set_local_description")?;
-        Ok(local.sdp)
+        Ok(self.rtc.advertised_sdp(&local.sdp, &mut self.advertised.lock().unwrap_or_else(|e| e.into_inner())))
     }
 
     async fn add_remote_ice(&self, candidate: &Value) -> Result<()> {

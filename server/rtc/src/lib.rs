@@ -100,12 +100,55 @@ pub struct RtcApi {
     ice: IceConfig,
     /// The one UDP port of [`UdpPorts::Mux`], as bound.
     pub udp_port: Option<u16>,
+    /// The public IPv4 address host candidates of the muxed port are advertised with.
+    advertise_ip: Option<String>,
 }
 
 impl RtcApi {
-    /// The ICE servers of this process for the session `id` (TURN credentials minted now).
-    pub fn ice_servers_for(&self, id: &str) -> Vec<IceServer> {
-        self.ice.servers_now(id)
+    /// A local candidate line (`candidate:… udp PRIO ADDRESS PORT typ host …`) as peers
+    /// should see it: a host candidate of the muxed port carries the public address (see
+    /// `--public-ip`); `None` for a copy of one already advertised (`seen` keeps them).
+    pub fn advertised(&self, candidate: &str, seen: &mut std::collections::HashSet<String>) -> Option<String> {
+        let Some(public) = &self.advertise_ip else { return Some(candidate.to_owned()) };
+        let mut fields: Vec<&str> = candidate.split(' ').collect();
+        if fields.len() < 8 || fields[6] != "typ" || fields[7] != "host" {
+            return Some(candidate.to_owned());
+        }
+        fields[4] = public;
+        let line = fields.join(" ");
+        // Foundation and priority differ between the copies; address and port do not.
+        seen.insert(format!("{}:{}", fields[4], fields[5])).then_some(line)
+    }
+
+    /// [`RtcApi::advertised`] applied to every `a=candidate:` line of an SDP.
+    pub fn advertised_sdp(&self, sdp: &str, seen: &mut std::collections::HashSet<String>) -> String {
+        if self.advertise_ip.is_none() {
+            return sdp.to_owned();
+        }
+        let mut out = String::with_capacity(sdp.len());
+        for line in sdp.split_inclusive("\r\n") {
+            match line.strip_prefix("a=") {
+                Some(c) if c.starts_with("candidate:") => {
+                    if let Some(c) = self.advertised(c.trim_end(), seen) {
+                        out.push_str("a=");
+                        out.push_str(&c);
+                        out.push_str("\r\n");
+                    }
+                }
+                _ => out.push_str(line),
+            }
+        }
+        out
+    }
+
+    /// What a master gathers with: the STUN servers only. TURN is for clients that cannot
+    /// reach the master's UDP port; the master reaches their relays from its own address
+    /// (a relay of its own would hold an allocation per session and send the media through
+    /// TURN twice).
+    pub fn master_ice_servers(&self) -> Vec<IceServer> {
+        let mut servers = self.ice.servers_now("master");
+        servers.retain(|s| s.urls.iter().all(|u| !u.starts_with("turn:") && !u.starts_with("turns:")));
+        servers
     }
 
     /// A peer connection gathering through `servers`; `relay_only`: TURN relay candidates
@@ -151,9 +194,16 @@ pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Re
     if cfg.loopback_only {
         settings.set_ip_filter(Box::new(|ip: IpAddr| ip.is_loopback()));
     }
-    if !cfg.public_ips.is_empty() {
+    // Behind 1:1 NAT. On one muxed port the host candidates are advertised with the public
+    // address by [`RtcApi::advertised`] instead of webrtc's 1:1 mapping: that maps every
+    // local address (loopback, a container bridge, …) to the same public one, and the
+    // duplicates it makes close the one socket they share (pion/ice#505, also in
+    // webrtc-ice 0.17), so no session could connect.
+    let muxed = matches!(cfg.udp, UdpPorts::Mux(_));
+    if !cfg.public_ips.is_empty() && !muxed {
         settings.set_nat_1to1_ips(cfg.public_ips.clone(), webrtc::ice_transport::ice_candidate_type::RTCIceCandidateType::Host);
     }
+    let advertise_ip = if muxed { cfg.public_ips.iter().find(|ip| ip.parse::<Ipv4Addr>().is_ok()).cloned() } else { None };
     let mut udp_port = None;
     match cfg.udp {
         UdpPorts::Any => {}
@@ -173,7 +223,7 @@ pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Re
     }
     tweak(&mut settings);
     let api = APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build();
-    Ok(Arc::new(RtcApi { api, ice: cfg.ice.clone(), udp_port }))
+    Ok(Arc::new(RtcApi { api, ice: cfg.ice.clone(), udp_port, advertise_ip }))
 }
 
 /// The one UDP socket of every session, with the error a person can act on.
