@@ -293,4 +293,23 @@ mod tests {
         let api = build_api(&RtcConfig { udp: UdpPorts::Mux(0), ..RtcConfig::loopback() }).unwrap();
         assert!(api.udp_port.is_some_and(|p| p > 0));
     }
+
+    #[tokio::test]
+    async fn on_one_port_host_candidates_carry_the_public_address_once() {
+        let cfg = RtcConfig { udp: UdpPorts::Mux(0), public_ips: vec!["198.51.100.4".into()], ..RtcConfig::default() };
+        let api = build_api(&cfg).unwrap();
+        let mut seen = std::collections::HashSet::new();
+        let lo = "candidate:1 1 udp 2130706431 127.0.0.1 3479 typ host";
+        let eth = "candidate:2 1 udp 2130706175 10.0.0.5 3479 typ host";
+        assert_eq!(api.advertised(lo, &mut seen).as_deref(), Some("candidate:1 1 udp 2130706431 198.51.100.4 3479 typ host"));
+        assert_eq!(api.advertised(eth, &mut seen), None, "a second host candidate on the same port is a duplicate");
+        let relay = "candidate:3 1 udp 16777215 203.0.113.9 49160 typ relay raddr 0.0.0.0 rport 0";
+        assert_eq!(api.advertised(relay, &mut seen).as_deref(), Some(relay), "only host candidates are rewritten");
+        let sdp = format!("v=0\r\na=candidate:{}\r\na=candidate:{}\r\na=end-of-candidates\r\n", &lo["candidate:".len()..], &eth["candidate:".len()..]);
+        let out = api.advertised_sdp(&sdp, &mut std::collections::HashSet::new());
+        assert_eq!(out, "v=0\r\na=candidate:1 1 udp 2130706431 198.51.100.4 3479 typ host\r\na=end-of-candidates\r\n");
+        // Without a muxed port (webrtc's own mapping applies), nothing is rewritten.
+        let api = build_api(&RtcConfig { public_ips: vec!["198.51.100.4".into()], ..RtcConfig::default() }).unwrap();
+        assert_eq!(api.advertised(eth, &mut std::collections::HashSet::new()).as_deref(), Some(eth));
+    }
 }
