@@ -37,7 +37,7 @@ use std::{
 };
 
 use nephele_client::{ClientNet, ClientOptions, Receive, StreamClient, replay::Trace};
-use nephele_e2e::{ShowLogOnFailure, fixture_scene, nephele_bin, repo, spawn_serve};
+use nephele_e2e::{run_ok as run, ShowLogOnFailure, fixture_scene, nephele_bin, repo, spawn_serve};
 use nephele_signaling::{Mode, ToClient};
 use tokio::net::UdpSocket;
 
@@ -49,19 +49,9 @@ const ONE_WAY_DELAY: Duration = Duration::from_millis(25);
 const LOSS_PPM: u64 = 10_000;
 const CLIENTS: usize = 30;
 
-fn run(program: &str, args: &[&str]) {
-    let out = Command::new(program).args(args).output().unwrap_or_else(|e| panic!("cannot run {program}: {e}"));
-    assert!(out.status.success(), "`{program} {}` failed: {}{}", args.join(" "), String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-}
-
 /// Fails (never skips) without what the test needs.
 fn preflight() {
-    let uid = Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string()).unwrap_or_default();
-    assert_eq!(uid, "0", "the NAT test needs root (network namespaces, veth pairs, iptables); run it as root, as CI does");
-    for (tool, arg, package) in [("ip", "-V", "iproute2"), ("iptables", "-V", "iptables"), ("turnserver", "-h", "coturn"), ("node", "--version", "nodejs")] {
-        let found = Command::new(tool).arg(arg).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok();
-        assert!(found, "`{tool}` is missing: install the Debian package `{package}` (tests/run and .ci/run do)");
-    }
+    nephele_e2e::require_root_and("the NAT test", &[("ip", "-V", "iproute2"), ("iptables", "-V", "iptables"), ("turnserver", "-h", "coturn"), ("node", "--version", "nodejs")]);
 }
 
 /// The three namespaces and their links; all deleted when dropped.

@@ -35,7 +35,7 @@ use std::{
 
 use nephele_client::{ClientNet, ClientOptions, POSE_BACKLOG_FREE, Receive, ReceiveCounts, StreamClient, replay::Trace};
 use nephele_wire::ToViewer;
-use nephele_e2e::{Reap, ShowLogOnFailure, fixture_scene, nephele_bin, spawn_serve};
+use nephele_e2e::{run_ok as run, Reap, ShowLogOnFailure, fixture_scene, nephele_bin, spawn_serve};
 use nephele_signaling::Mode;
 use tokio::{net::UdpSocket, sync::mpsc};
 use webrtc::{
@@ -58,20 +58,9 @@ const MAX_FREEZE: Duration = Duration::from_millis(1000);
 // ---------------------------------------------------------------------------------------
 // The namespace
 
-/// Runs a command; panics with its output if it fails.
-fn run(program: &str, args: &[&str]) {
-    let out = Command::new(program).args(args).output().unwrap_or_else(|e| panic!("cannot run {program}: {e}"));
-    assert!(out.status.success(), "`{program} {}` failed: {}{}", args.join(" "), String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-}
-
 /// Fails (never skips) without what the test needs.
 fn preflight() {
-    let uid = Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string()).unwrap_or_default();
-    assert_eq!(uid, "0", "the network-fault test needs root (it makes a network namespace, a veth pair and iptables rules); run it as root, as CI does");
-    for (tool, package) in [("ip", "iproute2"), ("iptables", "iptables")] {
-        let found = Command::new(tool).arg("-V").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success());
-        assert!(found, "`{tool}` is missing: install the Debian package `{package}` (tests/run and .ci/run do)");
-    }
+    nephele_e2e::require_root_and("the network-fault test", &[("ip", "-V", "iproute2"), ("iptables", "-V", "iptables")]);
 }
 
 /// Two network namespaces of this test's own: the server's, and a router between it and

@@ -39,6 +39,24 @@ pub fn nephele_bin() -> PathBuf {
     bin
 }
 
+/// Runs a command to the end; panics with its output if it fails (the namespace tests'
+/// network set-up).
+pub fn run_ok(program: &str, args: &[&str]) {
+    let out = Command::new(program).args(args).output().unwrap_or_else(|e| panic!("cannot run {program}: {e}"));
+    assert!(out.status.success(), "`{program} {}` failed: {}{}", args.join(" "), String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+}
+
+/// Fails (never skips) unless this runs as root with every `(command, its version flag,
+/// Debian package)` of `tools` installed: the namespace tests need both, as CI gives them.
+pub fn require_root_and(test: &str, tools: &[(&str, &str, &str)]) {
+    let uid = Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string()).unwrap_or_default();
+    assert_eq!(uid, "0", "{test} needs root (network namespaces, veth pairs, iptables rules); run it as root, as CI does");
+    for (tool, flag, package) in tools {
+        let found = Command::new(tool).arg(flag).stdout(std::process::Stdio::null()).stderr(std::process::Stdio::null()).status().is_ok();
+        assert!(found, "`{tool}` is missing: install the Debian package `{package}` (tests/run and .ci/run do)");
+    }
+}
+
 /// A `nephele` command of this build.
 pub fn nephele() -> Command {
     Command::new(nephele_bin())

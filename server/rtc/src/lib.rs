@@ -204,6 +204,9 @@ pub fn build_api_with(cfg: &RtcConfig, tweak: &dyn Fn(&mut SettingEngine)) -> Re
         settings.set_nat_1to1_ips(cfg.public_ips.clone(), webrtc::ice_transport::ice_candidate_type::RTCIceCandidateType::Host);
     }
     let advertise_ip = if muxed { cfg.public_ips.iter().find(|ip| ip.parse::<Ipv4Addr>().is_ok()).cloned() } else { None };
+    if muxed && !cfg.public_ips.is_empty() && advertise_ip.is_none() {
+        anyhow::bail!("--public-ip {}: one UDP port (--rtc-port N) is IPv4 only; give the public IPv4 address", cfg.public_ips.join(","));
+    }
     let mut udp_port = None;
     match cfg.udp {
         UdpPorts::Any => {}
@@ -308,6 +311,9 @@ mod tests {
         let sdp = format!("v=0\r\na=candidate:{}\r\na=candidate:{}\r\na=end-of-candidates\r\n", &lo["candidate:".len()..], &eth["candidate:".len()..]);
         let out = api.advertised_sdp(&sdp, &mut std::collections::HashSet::new());
         assert_eq!(out, "v=0\r\na=candidate:1 1 udp 2130706431 198.51.100.4 3479 typ host\r\na=end-of-candidates\r\n");
+        // The one port is IPv4: an IPv6 public address alone is refused in words.
+        let err = build_api(&RtcConfig { udp: UdpPorts::Mux(0), public_ips: vec!["2001:db8::4".into()], ..RtcConfig::default() }).err().expect("refused");
+        assert!(format!("{err:#}").contains("IPv4 only"), "{err:#}");
         // Without a muxed port (webrtc's own mapping applies), nothing is rewritten.
         let api = build_api(&RtcConfig { public_ips: vec!["198.51.100.4".into()], ..RtcConfig::default() }).unwrap();
         assert_eq!(api.advertised(eth, &mut std::collections::HashSet::new()).as_deref(), Some(eth));

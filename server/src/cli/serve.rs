@@ -47,7 +47,7 @@ pub struct MasterOptions {
     pub loopback_only: bool,
     /// Public IP(s) to advertise in ICE candidates (server behind 1:1 NAT, or in a
     /// container whose UDP port is forwarded from the host).
-    #[arg(long, env = "NEPHELE_PUBLIC_IP", value_delimiter = ',')]
+    #[arg(long, env = "NEPHELE_PUBLIC_IP", value_delimiter = ',', value_parser = parse_public_ip)]
     pub public_ip: Vec<String>,
     /// UDP for the media: `N` carries every session over the one port N (open just that
     /// in a firewall or a Kubernetes Service); `MIN-MAX` gives each session its own port
@@ -519,4 +519,9 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         };
         nephele_farm::worker::run_until(cfg, catalog, stop_signal("worker"), args.drain.deadline(), ready).await
     })
+}
+
+/// `--public-ip`: an IP address (not a host name: ICE candidates carry addresses).
+fn parse_public_ip(text: &str) -> Result<String, String> {
+    text.trim().parse::<std::net::IpAddr>().map(|ip| ip.to_string()).map_err(|_| format!("{text:?} is not an IP address (e.g. 203.0.113.7)"))
 }
