@@ -20,7 +20,7 @@ use nephele_e2e::core_config;
 use nephele_signaling::Mode;
 
 fn client_opts(signal_url: &str, width: u32, height: u32) -> ClientOptions {
-    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, receive: Receive::Decode, quilt: None }
+    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, receive: Receive::Decode, quilt: None, depth: false }
 }
 
 fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {

@@ -33,6 +33,23 @@ async fn chromium_streams_the_viewer_and_a_drag_changes_the_picture() {
     assert!(report["meanAbsDiff"].as_f64().unwrap() > 2.0, "{report}");
 }
 
+/// The viewer reprojects each frame by its depth (tests/browser/glass.mjs): depth messages
+/// decode in the page, a still camera's warp is the frame itself, and after a turn the warped
+/// picture is nearer the server's render of the turned camera than the stale frame.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn chromium_reprojects_the_viewer_by_depth() {
+    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+    assert!(PathBuf::from(&chromium).exists(), "Chromium not found at {chromium}: install the `chromium` package (tests/run does)");
+    let (server, _) = nephele_e2e::start_server(core_config(4)).await;
+    let output = browser_check(repo().join("tests/browser/glass.mjs"), format!("http://{}/", server.addr), chromium).await;
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    println!("{stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    let last = stdout.lines().last().unwrap_or_default();
+    let report: serde_json::Value = serde_json::from_str(last).unwrap_or_else(|_| panic!("no JSON report from the browser check: {stdout}"));
+    assert!(output.status.success() && report["ok"] == true, "browser check failed: {report}");
+    assert!(report["warpedDb"].as_f64().unwrap() >= report["staleDb"].as_f64().unwrap() + 1.0, "{report}");
+}
+
 /// Runs `node SCRIPT URL` with Chromium at `chromium` to its end (node and the browser are
 /// ended as one process group however it goes) and returns its output.
 async fn browser_check(script: PathBuf, url: String, chromium: String) -> std::process::Output {

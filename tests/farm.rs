@@ -26,6 +26,7 @@ fn opts(url: String, scene: &str, size: (u32, u32), fps: u32) -> ReplayOptions {
             token: None,
             receive: Receive::Decode,
             quilt: None,
+            depth: false,
         },
         anchor: None,
         quality_every: 0,

@@ -16,7 +16,7 @@ use nephele_rtc::{RtcConfig, UdpPorts};
 use nephele_signaling::{HubConfig, Mode};
 
 fn opts(url: &str, width: u32, height: u32, receive: Receive) -> ClientOptions {
-    ClientOptions { signal_url: url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, receive, quilt: None }
+    ClientOptions { signal_url: url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps: 25, token: None, receive, quilt: None, depth: false }
 }
 
 /// A UDP port free a moment ago (the server binds it next).

@@ -11,7 +11,7 @@ use nephele_signaling::{
 };
 
 fn spec(scene: &str, mode: Mode, width: u32, height: u32, fps: u32, quilt: Option<QuiltSpec>) -> JoinSpec {
-    JoinSpec { scene: scene.into(), mode, width, height, fps, quilt }
+    JoinSpec { scene: scene.into(), mode, width, height, fps, quilt, depth: false }
 }
 
 /// Good joins and one per rule of `JoinSpec::check` (and a few edges).

@@ -94,7 +94,7 @@ async fn every_role_serves_openmetrics_by_convention_and_forgets_sessions() {
     wait_ready(master_metrics, "the master").await;
 
     // A session streams, then leaves.
-    let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: 96, height: 64, fps: 25, token: None, receive: Receive::AccessUnits, quilt: None };
+    let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: 96, height: 64, fps: 25, token: None, receive: Receive::AccessUnits, quilt: None, depth: false };
     let mut client = StreamClient::connect(&opts).await.expect("a client connects");
     let trace = Trace::builtin("orbit").unwrap();
     let mut frames = 0;

@@ -22,7 +22,7 @@ use nephele_renderer::{
 use nephele_signaling::{Mode, QuiltSpec};
 
 fn opts(addr: std::net::SocketAddr, mode: Mode, size: (u32, u32), quilt: Option<QuiltSpec>) -> ClientOptions {
-    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width: size.0, height: size.1, fps: 25, token: None, receive: Receive::Pixels, quilt }
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width: size.0, height: size.1, fps: 25, token: None, receive: Receive::Pixels, quilt, depth: false }
 }
 
 /// Sends `pose(seq)` every 20 ms for `secs`, then returns the last decoded frame that

@@ -245,7 +245,7 @@ impl Drop for Turn {
 }
 
 fn opts(signal_url: &str) -> ClientOptions {
-    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width: 96, height: 64, fps: 25, token: None, receive: Receive::AccessUnits, quilt: None }
+    ClientOptions { signal_url: signal_url.into(), scene: "trio".into(), mode: Mode::Viewer, width: 96, height: 64, fps: 25, token: None, receive: Receive::AccessUnits, quilt: None, depth: false }
 }
 
 /// Sends `poses` poses 40 ms apart; returns the frames received.

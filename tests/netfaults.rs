@@ -372,7 +372,7 @@ async fn the_stream_survives_loss_jitter_and_a_blackout() {
         })),
         ..ClientNet::default()
     };
-    let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: FPS, token: None, receive: Receive::Decode, quilt: None };
+    let opts = ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: FPS, token: None, receive: Receive::Decode, quilt: None, depth: false };
     let mut client = StreamClient::connect_with(&opts, &net).await.expect("the client connects to the server in the namespace");
 
     // Frames, signaling and viewer messages are logged in the background.

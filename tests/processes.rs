@@ -142,7 +142,7 @@ async fn streams_survive_a_signaling_restart() {
     let url = format!("ws://{addr}/signal");
     let signal = spawn_signal_at(&addr);
     let _master = nephele_e2e::spawn_fixture_master(&addr);
-    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, receive: Receive::Decode, quilt: None };
+    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: nephele_signaling::Mode::Viewer, width: 160, height: 120, fps: 25, token: None, receive: Receive::Decode, quilt: None, depth: false };
     tokio::task::spawn_blocking({
         let addr = addr.clone();
         move || wait_for_master(&addr, |m| m["free_rays_per_s"].is_number())

@@ -42,7 +42,7 @@ fn spawn_printing(args: &[&str], marker: &str) -> (Reap, String) {
 }
 
 fn opts(addr: &str) -> ClientOptions {
-    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: 96, height: 64, fps: 25, token: None, receive: Receive::AccessUnits, quilt: None }
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode: Mode::Viewer, width: 96, height: 64, fps: 25, token: None, receive: Receive::AccessUnits, quilt: None, depth: false }
 }
 
 /// `serve` with three streaming clients: SIGTERM tells each of them why within a second

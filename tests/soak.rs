@@ -546,7 +546,7 @@ where
 async fn join_and_drop(url: &str) -> Result<(), String> {
     let (ws, _) = tokio_tungstenite::connect_async(url).await.map_err(|e| format!("websocket: {e}"))?;
     let (mut tx, mut rx) = ws.split();
-    let join = ToSignal::Join { spec: nephele_signaling::protocol::JoinSpec { scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, quilt: None }, token: None };
+    let join = ToSignal::Join { spec: nephele_signaling::protocol::JoinSpec { scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, quilt: None, depth: false }, token: None };
     tx.send(Message::text(serde_json::to_string(&join).unwrap())).await.map_err(|e| format!("sending join: {e}"))?;
     let reply = tokio::time::timeout(Duration::from_secs(10), async {
         while let Some(m) = rx.next().await {
@@ -569,7 +569,7 @@ async fn join_and_drop(url: &str) -> Result<(), String> {
 async fn cycle(i: usize, server: SocketAddr, stats: &Stats) -> Result<(bool, bool), String> {
     let ending = Ending::of(i);
     let url = format!("ws://{server}/signal");
-    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, token: None, receive: Receive::Decode, quilt: None };
+    let opts = ClientOptions { signal_url: url.clone(), scene: "trio".into(), mode: Mode::Viewer, width: WIDTH, height: HEIGHT, fps: 25, token: None, receive: Receive::Decode, quilt: None, depth: false };
     if ending == Ending::JoinOnly {
         with_retries(stats, ending, || join_and_drop(&url)).await?;
         return Ok((false, false));

@@ -39,7 +39,7 @@ async fn start_server(capacity: u32) -> (SocketAddr, Arc<Catalog>) {
 }
 
 fn client_opts(addr: SocketAddr, mode: Mode, width: u32, height: u32) -> ClientOptions {
-    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, receive: Receive::Pixels, quilt: None }
+    ClientOptions { signal_url: format!("ws://{addr}/signal"), scene: "trio".into(), mode, width, height, fps: 50, token: None, receive: Receive::Pixels, quilt: None, depth: false }
 }
 
 fn short_trace(name: &str, poses: usize) -> Trace {

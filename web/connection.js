@@ -77,6 +77,10 @@ export function readPageOptions({ width = 640, height = 480 } = {}) {
     token: q.get('token') || undefined,
     // ?relay=1: TURN relay candidates only (iceTransportPolicy "relay"), to try the relay.
     relay: q.get('relay') === '1',
+    // ?reproject=0: show frames as they come (no depth asked for, no warp); ?predict=0: send
+    // the present pose, not the one predicted for when its frame is shown (glass.js).
+    reproject: q.get('reproject') !== '0',
+    predict: q.get('predict') !== '0',
   };
 }
 
@@ -136,6 +140,7 @@ const CONNECT_TIMEOUT_MS = 20000;
  *                    time `tMs` (performance.now()), or null to send nothing this tick
  *   camera           optional: the page's OrbitCamera, only shown as window.nephele.camera
  *   onSession(msg)   the channel's "session" message (center, radius, up, size, …)
+ *   onBinary(buf)    a binary channel message (a frame's depth, "NDP1": glass.js)
  *   onChange()       something shown on the HUD changed (state, banner, stats)
  *
  * Readable fields: state, banner {text, kind} | null, lastFrame, frameInfos, poseSeq,
@@ -143,8 +148,8 @@ const CONNECT_TIMEOUT_MS = 20000;
  * errors [{code, message, time}], session (last "session" message), hud (see pollStats).
  */
 export class Connection {
-  constructor({ mode, video, pose, camera, onSession, onChange }) {
-    Object.assign(this, { mode, video, poseFn: pose, camera, onSession, onChange });
+  constructor({ mode, video, pose, camera, onSession, onChange, onBinary }) {
+    Object.assign(this, { mode, video, poseFn: pose, camera, onSession, onChange, onBinary });
     this.state = 'idle';
     this.banner = null;
     this.errors = [];
@@ -170,7 +175,7 @@ export class Connection {
     addEventListener('pageshow', (e) => { if (e.persisted && this.params) this.connect(this.params); });
   }
 
-  /** (Re)join with { scene, width, height, fps, token?, quilt? }; resets the backoff. */
+  /** (Re)join with { scene, width, height, fps, token?, quilt?, depth? }; resets the backoff. */
   connect(params) {
     this.params = { ...params };
     this.backoffS = 1;
@@ -300,10 +305,11 @@ export class Connection {
     ws.onopen = () => {
       if (stale()) return;
       opened = true;
-      const { scene, width, height, fps, token, quilt } = this.params;
+      const { scene, width, height, fps, token, quilt, depth } = this.params;
       const join = { type: 'join', scene, mode: this.mode, width, height, fps };
       if (token) join.token = token;
       if (quilt) join.quilt = quilt;
+      if (depth) join.depth = true;
       this.send(join);
       this.setState('joining');
     };
@@ -467,7 +473,10 @@ export class Connection {
   }
 
   onChannelMessage(data) {
-    if (typeof data !== 'string') return;
+    if (typeof data !== 'string') {
+      this.onBinary?.(data);
+      return;
+    }
     let msg;
     try { msg = JSON.parse(data); } catch { console.warn('nephele: non-JSON channel message'); return; }
     if (msg.type === 'frame') {

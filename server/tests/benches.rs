@@ -82,6 +82,29 @@ fn bench_stream() {
     assert!(table.contains("| size | scale | queue | render |") && table.contains("PSNR mean / min dB"), "{table}");
 }
 
+/// What the eye sees, at 0 and 50 ms: every mode scored, depth with every frame (none missing,
+/// bytes counted), warped frames show the display pose (age 0), and a still camera loses
+/// nothing to reprojection (≤ 0.2 dB: the bound; the warp to the same camera is exact).
+#[test]
+fn bench_glass() {
+    let (r, table) = bench(&["glass", "--asset", "builtin:trio-small", "--size", "64x48", "--backend", "cpu", "--rtts", "0,50"]);
+    assert_eq!(rows(&r, "rows", &["psnr_mean_db", "psnr_p5_db", "pose_age_mean_ms", "rotation_error_mean_deg", "video_bytes_per_frame", "depth_bytes_per_frame", "learnt_latency_ms"]), 8);
+    for row in r["rows"].as_array().unwrap() {
+        assert!(row["display_frames"].as_u64().unwrap() > 100, "{row}");
+        assert_eq!(row["missing_depth"], 0, "{row}");
+        assert!(row["depth_bytes_per_frame"].as_f64().unwrap() > 0.0, "{row}");
+        if ["reproject", "both"].contains(&row["mode"].as_str().unwrap()) {
+            assert_eq!(row["pose_age_mean_ms"], 0.0, "{row}");
+        }
+    }
+    let [stale, warped] = numbers(&r, &["still_stale_db", "still_reproject_db"])[..] else { unreachable!() };
+    assert!(warped >= stale - 0.2, "still camera: {stale} dB as decoded, {warped} dB warped");
+    for (mode, rtt) in [("both", "50"), ("stale", "0"), ("reproject", "0"), ("predict", "50")] {
+        assert!(r["psnr_db"][mode][rtt].as_f64().is_some(), "psnr_db.{mode}.{rtt} in {}", r["psnr_db"]);
+    }
+    assert!(table.contains("| RTT ms | mode | PSNR mean dB |") && table.contains("Still camera, 0 ms"), "{table}");
+}
+
 /// Two users, batching on and off, one address: the bench's own server raises signaling's
 /// per-address limits (`users::hub_for`), so its clients are not refused as a flood.
 #[test]

@@ -215,7 +215,7 @@ fn pose(seq: u32, width: u32, height: u32) -> PoseMessage {
 }
 
 fn opts(url: &str, width: u32, height: u32, fps: u32) -> ClientOptions {
-    ClientOptions { signal_url: url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: Receive::Decode, quilt: None }
+    ClientOptions { signal_url: url.into(), scene: "trio".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: Receive::Decode, quilt: None, depth: false }
 }
 
 /// Runs the three phases against a fresh server started from `exe`.

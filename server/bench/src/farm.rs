@@ -169,7 +169,7 @@ async fn stream(scenes: &[String], scene: &str, nats: Option<NatsSettings>, trac
         tokio::time::sleep(Duration::from_millis(1500)).await;
     }
     let opts = ReplayOptions {
-        client: ClientOptions { signal_url: server.signal_url(), scene: scene.into(), mode: Mode::Viewer, width: size.0, height: size.1, fps: 25, token: None, receive: Receive::Decode, quilt: None },
+        client: ClientOptions { signal_url: server.signal_url(), scene: scene.into(), mode: Mode::Viewer, width: size.0, height: size.1, fps: 25, token: None, receive: Receive::Decode, quilt: None, depth: false },
         anchor: None,
         quality_every: 0,
         save_dir: None,

@@ -8,6 +8,8 @@
 //! - [`users`]: many users on one server, batching on and off (NEPHELE §6.2);
 //! - [`farm`]: the NATS render farm against the in-process worker, and failover;
 //! - [`abuse`]: a viewer's frame rate while the server is attacked;
+//! - [`glass`]: what the eye sees at added round trips, with and without reprojection and
+//!   pose prediction;
 //! - `quilt` and `tradeoff` (with the `train` feature: they need an i-NGP teacher): Looking
 //!   Glass quilts, and the speed/accuracy trade of NEPHELE's Table 5 and Fig. 14.
 //!
@@ -16,6 +18,7 @@
 pub mod abuse;
 pub mod encode;
 pub mod farm;
+pub mod glass;
 pub mod plot;
 #[cfg(feature = "train")]
 pub mod quilt;
@@ -59,6 +62,10 @@ pub enum BenchCommand {
     /// join/leave loop and an empty-message loop at once, on a `nephele serve` child: its
     /// frame rate before, during and after, and the server's peak memory.
     Abuse(abuse::AbuseArgs),
+    /// What the eye sees: a motion trace through a real server at added round trips
+    /// (0–150 ms), a 60 Hz display showing each display frame stale, reprojected by depth,
+    /// predicted, or both; PSNR against a direct render at the true pose, pose age, bytes.
+    Glass(glass::GlassArgs),
 }
 
 /// Runs one `nephele bench` subcommand.
@@ -74,6 +81,7 @@ pub fn run(what: BenchCommand) -> Result<()> {
         #[cfg(feature = "train")]
         BenchCommand::Quilt(args) => quilt::run(args),
         BenchCommand::Abuse(args) => abuse::run(args),
+        BenchCommand::Glass(args) => glass::run(args),
     }
 }
 

@@ -212,7 +212,7 @@ fn stream_stereo(args: &QuiltBenchArgs) -> Result<StereoRow> {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
             let server = nephele_master::web::spawn_local(listener, catalog, cfg).await?;
             let opts = ReplayOptions {
-                client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode, width, height, fps: 25, token: None, receive: Receive::Decode, quilt: None },
+                client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode, width, height, fps: 25, token: None, receive: Receive::Decode, quilt: None, depth: false },
                 anchor: None,
                 quality_every: 0,
                 save_dir: None,

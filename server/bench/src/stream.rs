@@ -116,7 +116,7 @@ pub fn run(args: StreamArgs) -> Result<()> {
                 let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
                 let server = web::spawn_local(listener, Arc::clone(&catalog), cfg).await?;
                 let opts = replay::ReplayOptions {
-                    client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: Receive::Pixels, quilt: None },
+                    client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: Receive::Pixels, quilt: None, depth: false },
                     anchor: None,
                     quality_every: 10,
                     save_dir: None,

@@ -260,7 +260,7 @@ async fn session_run(
         let len = t.poses.len().max(1);
         t.poses.rotate_left(phase % len);
         let opts = ReplayOptions {
-            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: receive_of(k, decoders), quilt: None },
+            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: receive_of(k, decoders), quilt: None, depth: false },
             anchor: None,
             quality_every: 0,
             save_dir: None,
@@ -300,7 +300,7 @@ async fn overload_run(
         let extra = t.poses[..len.min(50 * (offered - k))].to_vec();
         t.poses.extend(extra);
         let opts = ReplayOptions {
-            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: receive_of(k, decoders), quilt: None },
+            client: ClientOptions { signal_url: server.signal_url(), scene: "bench".into(), mode: Mode::Viewer, width, height, fps, token: None, receive: receive_of(k, decoders), quilt: None, depth: false },
             anchor: None,
             quality_every: 0,
             save_dir: None,

@@ -33,8 +33,14 @@ use webrtc::{
 };
 
 use nephele_rtc::{RtcConfig, build_api_with, candidate_json};
-use nephele_wire::{PoseMessage, ToViewer, sei::parse_pose_seq};
+use nephele_wire::{
+    PoseMessage, ToViewer,
+    depth::{DepthError, DepthFrame},
+    sei::parse_pose_seq,
+};
 
+pub mod delay;
+pub mod glass;
 pub mod reassembly;
 pub mod replay;
 
@@ -84,6 +90,8 @@ pub struct ClientOptions {
     pub receive: Receive,
     /// Mode `quilt`: the layout to ask for (`None`: the master's default, 5×9 over 40°).
     pub quilt: Option<nephele_protocol::QuiltSpec>,
+    /// Ask for each frame's depth ([`StreamClient::depth`]), for reprojection.
+    pub depth: bool,
 }
 
 /// How far the client takes each access unit it reassembles.
@@ -123,6 +131,9 @@ pub struct StreamClient {
     channel: Arc<RTCDataChannel>,
     pub frames: mpsc::UnboundedReceiver<ReceivedFrame>,
     pub messages: mpsc::UnboundedReceiver<ToViewer>,
+    /// Each frame's depth, when [`ClientOptions::depth`] asked for it; a message that does
+    /// not parse comes as its error (the frame is then shown unwarped).
+    pub depth: mpsc::UnboundedReceiver<Result<DepthFrame, DepthError>>,
     /// The `session` message the master sent when the channel opened.
     pub session: ToViewer,
     /// Signaling messages after the connection was set up (`ended`, errors).
@@ -164,7 +175,7 @@ impl StreamClient {
         }
         .with_context(|| format!("connecting to {}", opts.signal_url))?;
         let (mut ws_tx, mut ws_rx) = ws.split();
-        let spec = JoinSpec { scene: opts.scene.clone(), mode: opts.mode, width: opts.width, height: opts.height, fps: opts.fps, quilt: opts.quilt };
+        let spec = JoinSpec { scene: opts.scene.clone(), mode: opts.mode, width: opts.width, height: opts.height, fps: opts.fps, quilt: opts.quilt, depth: opts.depth };
         let join = ToSignal::Join { spec, token: opts.token.clone() };
         ws_tx.send(Message::text(serde_json::to_string(&join)?)).await?;
         let ice_servers = match next_signal(&mut ws_rx).await? {
@@ -245,8 +256,11 @@ impl StreamClient {
         }));
 
         let (msg_tx, mut messages) = mpsc::unbounded_channel();
+        let (depth_tx, depth) = mpsc::unbounded_channel();
         channel.on_message(Box::new(move |m: DataChannelMessage| {
-            if m.is_string {
+            if !m.is_string {
+                let _ = depth_tx.send(DepthFrame::decode(&m.data));
+            } else {
                 match serde_json::from_slice::<ToViewer>(&m.data) {
                     Ok(msg) => {
                         let _ = msg_tx.send(msg);
@@ -329,7 +343,7 @@ impl StreamClient {
                 }
             }
         };
-        Ok(Self { pc, channel, frames, messages, session, signaling, ws_out, video_ssrc, stats, last_paced: std::sync::Mutex::new(None), poses_held_back: AtomicU64::new(0), closed: AtomicBool::new(false) })
+        Ok(Self { pc, channel, frames, messages, depth, session, signaling, ws_out, video_ssrc, stats, last_paced: std::sync::Mutex::new(None), poses_held_back: AtomicU64::new(0), closed: AtomicBool::new(false) })
     }
 
     pub async fn send_pose(&self, pose: &PoseMessage) -> Result<()> {

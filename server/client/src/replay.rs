@@ -38,7 +38,7 @@ pub struct Trace {
 }
 
 /// The traces shipped in `examples/traces/`, made by [`Trace::builtin`].
-pub const BUILTIN_TRACES: &[&str] = &["orbit", "zoom", "shake"];
+pub const BUILTIN_TRACES: &[&str] = &["orbit", "zoom", "shake", "head"];
 
 impl Trace {
     /// A built-in trace by name ([`BUILTIN_TRACES`]), or a trace file.
@@ -48,7 +48,8 @@ impl Trace {
 
     /// Built-in camera paths around the origin (the procedural scenes' centre):
     /// `orbit` (one turn in 5 s), `zoom` (distance 4 → 1.3, a close-up, and back),
-    /// `shake` (fast ±12° jitter, as a hand-held phone).
+    /// `shake` (fast ±12° jitter, as a hand-held phone), `head` (6 s of head turns at
+    /// human speeds: [`head_pose`]).
     pub fn builtin(name: &str) -> Result<Self> {
         let n = 250; // 5 s at 20 ms
         let orbit = |az: f64, el: f64, dist: f64| View::orbit(DVec3::ZERO, dist, az, el, Intrinsics::from_fov_x(2, 2, 1.0)).world_from_camera.as_mat4().to_cols_array();
@@ -75,6 +76,10 @@ impl Trace {
                     })
                     .collect(),
             ),
+            "head" => (
+                "a standing viewer turning their head: yaw and pitch turns of 25–55° at 100–300°/s peak (minimum-jerk), holds between, a slow sway",
+                (0..300).map(|i| head_pose(f64::from(i) * 0.02).as_mat4().to_cols_array()).collect(),
+            ),
             other => bail!("unknown trace {other:?}; built-in traces: {}", BUILTIN_TRACES.join(", ")),
         };
         Ok(Self { name: name.into(), description: description.into(), fov_y_deg: 40.0, period_ms: 20.0, poses })
@@ -99,6 +104,26 @@ impl Trace {
         Intrinsics { fx: fy, fy, cx: 0.5 * width as f32, cy: 0.5 * height as f32, width, height }
     }
 
+    /// The camera at `t_ms` after the first pose: the samples on either side blended
+    /// (rotation slerped, position lerped), the last one after the end.
+    pub fn pose_at(&self, t_ms: f64) -> glam::DMat4 {
+        let x = (t_ms / self.period_ms).max(0.0);
+        let i = (x.floor() as usize).min(self.poses.len() - 1);
+        let j = (i + 1).min(self.poses.len() - 1);
+        let f = (x - i as f64).clamp(0.0, 1.0);
+        let m = |k: usize| Mat4::from_cols_array(&self.poses[k]).as_dmat4();
+        let (a, b) = (m(i), m(j));
+        let qa = glam::DQuat::from_mat4(&a).normalize();
+        let qb = glam::DQuat::from_mat4(&b).normalize();
+        let p = a.w_axis.truncate().lerp(b.w_axis.truncate(), f);
+        glam::DMat4::from_rotation_translation(qa.slerp(qb, f).normalize(), p)
+    }
+
+    /// Length of the trace, ms.
+    pub fn duration_ms(&self) -> f64 {
+        self.period_ms * (self.poses.len() - 1) as f64
+    }
+
     /// Pose message `seq` for a `width`×`height` stream: the trace's pose `seq` (wrapping),
     /// stamped 20 ms apart.
     pub fn pose_message(&self, seq: u32, width: u32, height: u32) -> PoseMessage {
@@ -110,6 +135,36 @@ impl Trace {
             world_from_anchor: None,
         }
     }
+}
+
+/// The `head` trace at `t_s` seconds: a viewer 3.5 units from the object (azimuth 30°,
+/// elevation 15°) turning their head about world up (yaw) and their own x axis (pitch), each
+/// turn a minimum-jerk profile (peak speed 1.875 × mean; Flash & Hogan 1985), with a ±3 cm
+/// lateral sway at 0.4 Hz.
+pub fn head_pose(t_s: f64) -> glam::DMat4 {
+    // (start s, duration s, yaw to °, pitch to °): peaks 225, 295, 117, 125, 187, 219, 156 °/s.
+    const TURNS: [(f64, f64, f64, f64); 8] = [
+        (0.5, 0.25, 30.0, 0.0),
+        (1.15, 0.35, -25.0, 0.0),
+        (1.9, 0.4, 0.0, -12.0),
+        (2.7, 0.3, 20.0, -12.0),
+        (3.0, 0.4, -20.0, 8.0),
+        (3.9, 0.3, 15.0, 0.0),
+        (4.7, 0.3, -10.0, 0.0),
+        (5.5, 0.3, 0.0, 0.0),
+    ];
+    let (mut yaw, mut pitch) = (0.0, 0.0);
+    for &(start, duration, to_yaw, to_pitch) in &TURNS {
+        let tau = ((t_s - start) / duration).clamp(0.0, 1.0);
+        let s = tau * tau * tau * (10.0 - 15.0 * tau + 6.0 * tau * tau);
+        yaw += (to_yaw - yaw) * s;
+        pitch += (to_pitch - pitch) * s;
+    }
+    let base = View::orbit(DVec3::ZERO, 3.5, 30.0, 15.0, Intrinsics::from_fov_x(2, 2, 1.0)).world_from_camera;
+    let right = base.x_axis.truncate();
+    let eye = base.w_axis.truncate() + right * (0.03 * (std::f64::consts::TAU * 0.4 * t_s).sin());
+    let rotation = glam::DMat3::from_rotation_z(yaw.to_radians()) * glam::DMat3::from_mat4(base) * glam::DMat3::from_rotation_x(pitch.to_radians());
+    glam::DMat4::from_cols(rotation.x_axis.extend(0.0), rotation.y_axis.extend(0.0), rotation.z_axis.extend(0.0), eye.extend(1.0))
 }
 
 /// How to replay.

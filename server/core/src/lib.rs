@@ -190,6 +190,8 @@ pub enum Input {
 #[derive(Debug, Clone)]
 pub struct EncodeView {
     pub viewport: Viewport,
+    /// The camera the view was rendered with, at the viewport's size.
+    pub camera: nephele_renderer::View,
     /// At the render scale, one per scene object; the edge composes them by depth over
     /// the job's `compose_over` when there are several, then upscales to the viewport.
     pub parts: Vec<Arc<Frame>>,
@@ -205,6 +207,8 @@ pub struct EncodeJob {
     pub idr: bool,
     pub views: Vec<EncodeView>,
     pub compose_over: Option<Vec3>,
+    /// Send the frame's depth ([`nephele_wire::depth`]) after it.
+    pub depth: bool,
     pub width: u32,
     pub height: u32,
     /// When the frame started, for the encoder's timestamps.
@@ -1001,8 +1005,10 @@ impl MasterCore {
         let id = TaskId(self.next_task);
         self.next_task += 1;
         let (views, keys): (Vec<TaskView>, Vec<RequestKey>) = views.into_iter().unzip();
-        // Views over black are objects of composed scenes (see plan_round).
-        let needs_depth = views.iter().any(|v| v.background == Vec3::ZERO);
+        // Views over black are objects of composed scenes (see plan_round); a session that
+        // asked for depth gets it with every frame.
+        let wants_depth = |v: &TaskView| v.tags.iter().any(|t| self.users.get(&t.session).is_some_and(|u| u.req.spec.depth));
+        let needs_depth = views.iter().any(|v| v.background == Vec3::ZERO || wants_depth(v));
         (RenderTask { id, asset, views, class, rays, est_pixels, needs_depth }, keys)
     }
 
@@ -1021,7 +1027,7 @@ impl MasterCore {
             .views
             .iter()
             .zip(fl.parts.chunks(scene_objects))
-            .map(|(fv, parts)| EncodeView { viewport: fv.viewport, parts: parts.iter().flatten().cloned().collect() })
+            .map(|(fv, parts)| EncodeView { viewport: fv.viewport, camera: fv.view, parts: parts.iter().flatten().cloned().collect() })
             .collect();
         let (pose_seq, idr, started_at) = (job.pose.seq, job.idr, job.started_at);
         u.session.rendered(frame);
@@ -1032,6 +1038,7 @@ impl MasterCore {
             idr,
             views,
             compose_over: composed.then_some(u.background),
+            depth: u.req.spec.depth,
             width: u.req.spec.width,
             height: u.req.spec.height,
             started_at,

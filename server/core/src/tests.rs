@@ -128,7 +128,7 @@ impl Sim {
     }
 
     fn join(&mut self, session: &str, scene: &str, width: u32, height: u32, fps: u32) -> bool {
-        let req = JoinRequest { session: session.into(), spec: JoinSpec { scene: scene.into(), mode: Mode::Viewer, width, height, fps, quilt: None } };
+        let req = JoinRequest { session: session.into(), spec: JoinSpec { scene: scene.into(), mode: Mode::Viewer, width, height, fps, quilt: None, depth: false } };
         self.core.handle_input(self.now, Input::Join(req));
         self.drain();
         if self.rejected.contains_key(session) {
@@ -528,8 +528,8 @@ fn bad_joins_get_words_and_bystanders_keep_their_fps() {
     }
     // Quilts must split into equal tiles, and a layout goes only with mode quilt.
     let quilt = Some(nephele_protocol::QuiltSpec { cols: 5, rows: 9, cone_deg: 40.0 });
-    let bad_tiles = JoinRequest { session: "q".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Quilt, width: 160, height: 120, fps: 30, quilt } };
-    let stray = JoinRequest { session: "v".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Viewer, width: 160, height: 120, fps: 30, quilt } };
+    let bad_tiles = JoinRequest { session: "q".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Quilt, width: 160, height: 120, fps: 30, quilt, depth: false } };
+    let stray = JoinRequest { session: "v".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Viewer, width: 160, height: 120, fps: 30, quilt, depth: false } };
     for req in [bad_tiles, stray] {
         sim.core.handle_input(sim.now, Input::Join(req));
     }
@@ -558,7 +558,7 @@ fn bad_joins_get_words_and_bystanders_keep_their_fps() {
     assert!(sim.fps_between("good", 1000, 3500) >= 0.95 * 30.0);
     // The silent client's peer never connected in the real world; here it did, but a peer
     // that does not connect at all is ended after the connect timeout.
-    let req = JoinRequest { session: "ghost".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Viewer, width: 64, height: 48, fps: 10, quilt: None } };
+    let req = JoinRequest { session: "ghost".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Viewer, width: 64, height: 48, fps: 10, quilt: None, depth: false } };
     sim.core.handle_input(sim.now, Input::Join(req));
     while let o = sim.core.poll_output()
         && !matches!(o, Output::Timeout(_))
@@ -680,9 +680,9 @@ fn stereo_and_quilt_frames_are_one_task_each_tiled_into_one_frame() {
     use nephele_wire::{MultiViewPose, PoseView, Viewport};
     // Batching off: still one task per user frame, holding every view of it.
     let mut sim = Sim::new(fixed(4, false, Admission::Load), 20e6, 1.0);
-    let vr = JoinRequest { session: "vr".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Vr, width: 128, height: 48, fps: 25, quilt: None } };
+    let vr = JoinRequest { session: "vr".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Vr, width: 128, height: 48, fps: 25, quilt: None, depth: false } };
     let quilt = Some(nephele_protocol::QuiltSpec::default());
-    let q = JoinRequest { session: "q".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Quilt, width: 320, height: 432, fps: 25, quilt } };
+    let q = JoinRequest { session: "q".into(), spec: JoinSpec { scene: "lego".into(), mode: Mode::Quilt, width: 320, height: 432, fps: 25, quilt, depth: false } };
     for req in [vr, q] {
         sim.core.handle_input(sim.now, Input::Join(req));
     }

@@ -37,7 +37,10 @@ use nephele_farm::{
     worker::NatsAuth,
 };
 use nephele_rtc::{RtcConfig, build_api};
-use nephele_wire::FrameTimes;
+use nephele_wire::{
+    FrameTimes,
+    depth::{DepthFrame, DepthView},
+};
 
 use crate::{
     compositor::{ComposeChoice, Compositor},
@@ -121,7 +124,7 @@ enum Event {
     Peer(String, PeerEvent),
     Worker(WorkerEvent),
     /// `encoder` is `None` when it could not be made (the session cannot stream).
-    Encoded { session: String, frame: u64, encoder: Option<Box<FrameEncoder>>, result: Result<(Bytes, FrameTimes), String> },
+    Encoded { session: String, frame: u64, encoder: Option<Box<FrameEncoder>>, result: Result<Encoded, String> },
     Sent { session: String, frame: u64, times: FrameTimes },
     SendFailed { session: String, frame: u64, error: String },
 }
@@ -130,7 +133,7 @@ enum Event {
 enum PeerCommand {
     Offer(String),
     Ice(Value),
-    Video { access_unit: Bytes, duration: Duration, frame: u64, times: FrameTimes },
+    Video { access_unit: Bytes, duration: Duration, frame: u64, times: FrameTimes, depth: Option<Vec<u8>> },
     Text(String),
     Close,
 }
@@ -323,12 +326,12 @@ fn translate(
             edge.encoder = Some(*encoder);
             next_encode(edge, events, compositor);
             match result {
-                Ok((access_unit, times)) => {
+                Ok(Encoded { access_unit, times, depth }) => {
                     let now = Instant::now();
                     let period = Duration::from_secs_f64(1.0 / f64::from(edge.fps.max(1)));
                     let duration = edge.last_sent.map_or(period, |t| now.duration_since(t));
                     edge.last_sent = Some(now);
-                    command(sessions, &session, PeerCommand::Video { access_unit, duration, frame, times });
+                    command(sessions, &session, PeerCommand::Video { access_unit, duration, frame, times, depth });
                     None
                 }
                 Err(error) => Some(Input::FrameFailed { session, frame, error }),
@@ -433,9 +436,38 @@ fn next_encode(edge: &mut SessionEdge, events: &mpsc::UnboundedSender<Event>, co
     });
 }
 
+/// One encoded frame, and its depth if the session asked for it.
+struct Encoded {
+    access_unit: Bytes,
+    times: FrameTimes,
+    /// The encoded depth message, its RTP ticks still 0: set when the frame is sent.
+    depth: Option<Vec<u8>>,
+}
+
+/// The depth of each view of the frame (docs/architecture.md §5 "Depth"): the nearest hit of
+/// its objects, at the render scale. `None` when a part came without depth (a history hit
+/// from a remote worker's task that did not carry it).
+fn frame_depth(job: &EncodeJob) -> Option<DepthFrame> {
+    let viewports: Vec<nephele_wire::Viewport> = job.views.iter().map(|v| v.viewport).collect();
+    let stride = nephele_wire::depth::stride_for(&viewports);
+    let views = job
+        .views
+        .iter()
+        .map(|v| {
+            let first = v.parts.first()?;
+            let layers: Vec<&[f32]> = v.parts.iter().map(|p| &p.depth[..]).collect();
+            if layers.iter().any(|l| l.len() != (first.width * first.height) as usize) {
+                return None;
+            }
+            Some(DepthView::build(&v.camera, v.viewport, &layers, first.width, first.height, stride, nephele_wire::depth::DEPTH_LEVELS))
+        })
+        .collect::<Option<Vec<_>>>()?;
+    Some(DepthFrame { frame: job.frame, pose_seq: job.pose_seq, rtp_ticks: 0, views })
+}
+
 /// Blocking: compose each view's objects if several, upscale each view to its viewport if
-/// needed, tile the views into the frame, convert and encode.
-fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, compositor: &Compositor) -> (FrameEncoder, Result<(Bytes, FrameTimes), String>) {
+/// needed, tile the views into the frame, convert and encode; build the depth message.
+fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, compositor: &Compositor) -> (FrameEncoder, Result<Encoded, String>) {
     let _span = tracing::trace_span!("frame", session = %job.session, frame = job.frame, pose = job.pose_seq).entered();
     let (w, h) = (job.width, job.height);
     let t_compose = Instant::now();
@@ -453,8 +485,11 @@ fn encode(mut encoder: FrameEncoder, job: &EncodeJob, session_start: Instant, co
     let result = encoder
         .encode_at(rgba, w, h, u64::from(job.pose_seq), t_ms)
         .map(|f| {
-            let times = FrameTimes { compose_ms, ready_ms, convert_ms: f.convert_ms, encode_ms: f.encode_ms, bytes: f.annex_b.len(), idr: f.is_idr, ..Default::default() };
-            (Bytes::from(f.annex_b), times)
+            let t_depth = Instant::now();
+            let depth = job.depth.then(|| frame_depth(job)).flatten().map(|d| d.encode());
+            let depth_ms = if job.depth { t_depth.elapsed().as_secs_f64() * 1e3 } else { 0.0 };
+            let times = FrameTimes { compose_ms, ready_ms, convert_ms: f.convert_ms, encode_ms: f.encode_ms, bytes: f.annex_b.len(), idr: f.is_idr, depth_ms, ..Default::default() };
+            Encoded { access_unit: Bytes::from(f.annex_b), times, depth }
         })
         .map_err(|e| format!("encode: {e}"));
     (encoder, result)
@@ -551,9 +586,19 @@ async fn peer_loop(
                 Some(PeerCommand::Ice(candidate)) => if let Err(e) = peer.add_remote_ice(&candidate).await {
                     tracing::debug!(%session, "ignoring a bad ICE candidate: {e:#}");
                 },
-                Some(PeerCommand::Video { access_unit, duration, frame, mut times }) => {
+                Some(PeerCommand::Video { access_unit, duration, frame, mut times, depth }) => {
                     let t = Instant::now();
                     times.rtp_ticks = rtp_ticks;
+                    // The depth goes first (it is on the data channel, the picture on RTP): a
+                    // client has it by the time the picture decodes.
+                    if let Some(mut depth) = depth {
+                        nephele_wire::depth::set_rtp_ticks(&mut depth, rtp_ticks);
+                        let bytes = Bytes::from(depth);
+                        times.depth_bytes = bytes.len();
+                        if let Err(e) = peer.send_binary(bytes).await {
+                            tracing::debug!(%session, "depth send failed: {e:#}");
+                        }
+                    }
                     let ev = match peer.send_video(access_unit, duration).await {
                         Ok(()) => {
                             rtp_ticks = rtp_ticks.wrapping_add((duration.as_secs_f64() * f64::from(nephele_rtc::H264_CLOCK_HZ)) as u32);

@@ -62,6 +62,9 @@ pub trait MasterPeer: Send + Sync + 'static {
     fn send_video(&self, access_unit: Bytes, duration: Duration) -> impl Future<Output = Result<()>> + Send;
     /// Sends a text message on the pose channel (dropped if the channel is not open).
     fn send_text(&self, text: String) -> impl Future<Output = Result<()>> + Send;
+    /// Sends a binary message on the pose channel (a frame's depth; dropped if the channel is
+    /// not open).
+    fn send_binary(&self, bytes: Bytes) -> impl Future<Output = Result<()>> + Send;
     fn close(&self) -> impl Future<Output = ()> + Send;
 }
 
@@ -206,6 +209,14 @@ impl MasterPeer for WebrtcPeer {
         let dc = self.channel.lock().await.clone();
         if let Some(dc) = dc {
             dc.send_text(text).await.context("sending on the pose channel")?;
+        }
+        Ok(())
+    }
+
+    async fn send_binary(&self, bytes: Bytes) -> Result<()> {
+        let dc = self.channel.lock().await.clone();
+        if let Some(dc) = dc {
+            dc.send(&bytes).await.context("sending on the pose channel")?;
         }
         Ok(())
     }

@@ -116,6 +116,7 @@ const PAGES: &[(&str, &str, &str)] = &[
     ("/join.js", "text/javascript; charset=utf-8", include_str!("../../../web/join.js")),
     ("/hud.js", "text/javascript; charset=utf-8", include_str!("../../../web/hud.js")),
     ("/presented.js", "text/javascript; charset=utf-8", include_str!("../../../web/presented.js")),
+    ("/glass.js", "text/javascript; charset=utf-8", include_str!("../../../web/glass.js")),
     ("/viewer.js", "text/javascript; charset=utf-8", include_str!("../../../web/viewer.js")),
     ("/ar.js", "text/javascript; charset=utf-8", include_str!("../../../web/ar.js")),
     ("/vr.js", "text/javascript; charset=utf-8", include_str!("../../../web/vr.js")),

@@ -72,7 +72,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
         }
     };
     let opts = replay::ReplayOptions {
-        client: ClientOptions { signal_url: args.signal, scene: args.scene, mode, width, height, fps: args.fps, token: args.token, receive: if reference.is_some() || args.save.is_some() { Receive::Pixels } else { Receive::Decode }, quilt: None },
+        client: ClientOptions { signal_url: args.signal, scene: args.scene, mode, width, height, fps: args.fps, token: args.token, receive: if reference.is_some() || args.save.is_some() { Receive::Pixels } else { Receive::Decode }, quilt: None, depth: false },
         anchor: None,
         quality_every: args.quality_every,
         save_dir: args.save,

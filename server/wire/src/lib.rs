@@ -40,6 +40,7 @@
 //! info for every encoded frame (so latency is measured on the client's clock by echoing
 //! `t_client_ms`), and refusals with a reason.
 
+pub mod depth;
 pub mod sei;
 
 use glam::{DMat3, DMat4, DQuat, DVec3, Mat4, Vec3};
@@ -557,6 +558,12 @@ pub struct FrameTimes {
     /// Bytes of the access unit.
     pub bytes: usize,
     pub idr: bool,
+    /// Bytes of the frame's depth message (0: none sent).
+    #[serde(default)]
+    pub depth_bytes: usize,
+    /// Building and coding the depth message.
+    #[serde(default)]
+    pub depth_ms: f64,
 }
 
 impl ToViewer {

@@ -41,6 +41,18 @@ pub const CLIENT_SIGNAL_MESSAGE_BURST: f64 = 40.0;
 /// Longest message on the pose data channel, bytes; longer ones are refused unread.
 pub const MAX_POSE_MESSAGE_BYTES: usize = 4096;
 
+/// Most grid vertices of one frame's depth message (every view together): the grid step
+/// grows with the frame so that a 4K frame's depth stays one data-channel message.
+pub const MAX_DEPTH_VERTICES: usize = 16_384;
+/// Grid step of a depth message, pixels, unless the frame is too large for it (the step
+/// then doubles). 16 px: a quarter of 8 px's bytes, and no PSNR lost on the head trace (`nephele
+/// bench glass`, docs/benchmarks.md).
+pub const DEPTH_STRIDE_PX: u32 = 16;
+/// Largest grid step a depth message may declare, pixels.
+pub const MAX_DEPTH_STRIDE_PX: u32 = 256;
+/// Longest a client may ask the master to predict its pose ahead, ms.
+pub const MAX_PREDICTION_MS: f64 = 500.0;
+
 /// Most views one pose message may carry (a headset's two eyes, a CAVE's walls).
 pub const MAX_VIEWS_PER_POSE: usize = 8;
 /// Most views of a Looking Glass quilt (the largest common layout is 11×6 = 66).

@@ -76,6 +76,10 @@ pub struct JoinSpec {
     /// Quilt layout (mode `quilt` only; [`QuiltSpec::default`] when absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub quilt: Option<QuiltSpec>,
+    /// Send each frame's depth and camera (`nephele_wire::depth`), for reprojection on the
+    /// client (docs/architecture.md §5 "Depth").
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub depth: bool,
 }
 
 /// Why a join breaks its specification; the text is what the client is told.
