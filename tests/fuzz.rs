@@ -30,7 +30,7 @@ fn seeds() -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     for (w, h) in [(128, 48), (64, 48)] {
         let v = View::orbit(DVec3::ZERO, 4.0, 30.0, 20.0, Intrinsics::from_fov_x(w, h, 0.8));
-        out.push(PoseMessage { seq: 5, t_client_ms: 1.0, world_from_camera: v.world_from_camera.as_mat4(), intrinsics: v.intrinsics, world_from_anchor: None }.encode());
+        out.push(PoseMessage { seq: 5, t_client_ms: 1.0, world_from_camera: v.world_from_camera.as_mat4(), intrinsics: v.intrinsics, world_from_anchor: None, predicted: None }.encode());
     }
     let k = Intrinsics::from_fov_x(64, 48, 0.8);
     let v = View::orbit(DVec3::ZERO, 4.0, 30.0, 20.0, k);

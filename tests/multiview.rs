@@ -122,7 +122,7 @@ async fn a_quilt_streams_every_view_in_its_tile() {
     }
     let k = Intrinsics::from_fov_x(tile_w, tile_h, 0.7);
     let centre = View::orbit(DVec3::ZERO, 3.2, 30.0, 15.0, k);
-    let pose = |seq| PoseMessage { seq, t_client_ms: f64::from(seq), world_from_camera: centre.world_from_camera.as_mat4(), intrinsics: k, world_from_anchor: None }.encode();
+    let pose = |seq| PoseMessage { seq, t_client_ms: f64::from(seq), world_from_camera: centre.world_from_camera.as_mat4(), intrinsics: k, world_from_anchor: None, predicted: None }.encode();
     let frame = stream_still(&mut client, 2.5, pose).await;
     assert_eq!((frame.width, frame.height), size);
     // The convention, computed here from the written rule rather than taken from the server.

@@ -97,6 +97,7 @@ fn keep_posing(client: Arc<StreamClient>, width: u32, height: u32, stop: Arc<Ato
                 world_from_camera: Mat4::from_cols_array(&trace.poses[seq as usize % trace.poses.len()]),
                 intrinsics: trace.intrinsics(width, height),
                 world_from_anchor: None,
+                predicted: None,
             };
             if client.send_pose(&m).await.is_err() {
                 return;
@@ -211,7 +212,7 @@ async fn bad_input_gets_clear_errors_while_another_session_keeps_streaming() {
     let mut b_watch = watch(&mut b);
     let good = |seq: u32| {
         let t = Trace::builtin("orbit").unwrap();
-        PoseMessage { seq, t_client_ms: 1.0, world_from_camera: Mat4::from_cols_array(&t.poses[3]), intrinsics: t.intrinsics(w, h), world_from_anchor: None }.encode()
+        PoseMessage { seq, t_client_ms: 1.0, world_from_camera: Mat4::from_cols_array(&t.poses[3]), intrinsics: t.intrinsics(w, h), world_from_anchor: None, predicted: None }.encode()
     };
     let with = |mut bytes: Vec<u8>, offset: usize, v: f32| {
         bytes[offset..offset + 4].copy_from_slice(&v.to_le_bytes());

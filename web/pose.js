@@ -1,6 +1,7 @@
 // pose.js — the binary pose messages a page sends on the "pose" data channel (little-endian).
 //
-//   * encodePose():      "NPO1", one centred pinhole camera, 104 bytes (168 with an anchor);
+//   * encodePose():      "NPO1", one centred pinhole camera, 104 bytes (168 with an anchor;
+//                        72 more with a prediction: the horizon and the present camera);
 //   * encodePoseViews(): "NPO2", 1..8 views (stereo eyes, …) each with its own GL projection
 //                        and viewport in the streamed frame, 32 + 144·n bytes (+64 with an anchor);
 //   * orbitPose():       NPO1 of an OrbitCamera (what the viewer and AR pages send);
@@ -11,6 +12,7 @@
 
 export const POSE_LEN = 104;
 export const POSE_WITH_ANCHOR_LEN = 168;
+export const POSE_PREDICTION_LEN = 72;
 export const POSE_VIEWS_HEADER_LEN = 32;
 export const POSE_VIEW_LEN = 144;
 export const POSE_ANCHOR_LEN = 64;
@@ -24,10 +26,14 @@ const putMat4 = (v, at, m) => { for (let i = 0; i < 16; i++) v.setFloat32(at + 4
 /**
  * The single-camera message:
  * "NPO1" | u32 seq | f64 t_client_ms | f32×16 world_from_camera (column-major) |
- * f32×4 fx fy cx cy | u32×2 width height | optional f32×16 world_from_anchor.
+ * f32×4 fx fy cx cy | u32×2 width height | optional f32×16 world_from_anchor |
+ * optional prediction: f64 horizon ms, f32×16 the present world_from_camera (then
+ * worldFromCamera is the camera predicted for when the frame will be shown).
+ * `predicted`: { horizonMs, presentWorldFromCamera } or undefined.
  */
-export function encodePose({ seq, tClientMs, worldFromCamera, intrinsics, width, height, worldFromAnchor }) {
-  const bytes = new Uint8Array(worldFromAnchor ? POSE_WITH_ANCHOR_LEN : POSE_LEN);
+export function encodePose({ seq, tClientMs, worldFromCamera, intrinsics, width, height, worldFromAnchor, predicted }) {
+  const base = worldFromAnchor ? POSE_WITH_ANCHOR_LEN : POSE_LEN;
+  const bytes = new Uint8Array(base + (predicted ? POSE_PREDICTION_LEN : 0));
   const v = new DataView(bytes.buffer);
   putMagic(v, 'NPO1');
   v.setUint32(4, seq, true);
@@ -38,6 +44,10 @@ export function encodePose({ seq, tClientMs, worldFromCamera, intrinsics, width,
   v.setUint32(96, width, true);
   v.setUint32(100, height, true);
   if (worldFromAnchor) putMat4(v, 104, worldFromAnchor);
+  if (predicted) {
+    v.setFloat64(base, predicted.horizonMs, true);
+    putMat4(v, base + 8, predicted.presentWorldFromCamera);
+  }
   return bytes;
 }
 
@@ -74,7 +84,7 @@ export function encodePoseViews({ seq, tClientMs, width, height, views, worldFro
 }
 
 /** NPO1 of an OrbitCamera for a width×height image (centred pinhole from its fovY). */
-export function orbitPose(camera, { seq, tClientMs, width, height, worldFromAnchor }) {
+export function orbitPose(camera, { seq, tClientMs, width, height, worldFromAnchor, predicted }) {
   return encodePose({
     seq,
     tClientMs,
@@ -83,6 +93,7 @@ export function orbitPose(camera, { seq, tClientMs, width, height, worldFromAnch
     width,
     height,
     worldFromAnchor: worldFromAnchor || undefined,
+    predicted,
   });
 }
 

@@ -39,12 +39,14 @@ const conn = new Connection({
   // The orbit camera as NPO1 at the joined size, every 20 ms: predicted for when its frame
   // will be shown, unless ?predict=0.
   pose: (seq, tClientMs) => {
-    predictor.observe(tClientMs, camera.worldFromCamera());
+    const present = camera.worldFromCamera();
+    predictor.observe(tClientMs, present);
     const latency = conn.presented.p50();
-    horizonMs = options.predict && latency !== null ? latency + 8 : 0;
-    const predicted = horizonMs > 0 ? predictor.predict(horizonMs) : null;
-    const view = predicted ? { worldFromCamera: () => predicted, intrinsics: (w, h) => camera.intrinsics(w, h) } : camera;
-    return orbitPose(view, { seq, tClientMs, width: conn.params.width, height: conn.params.height });
+    horizonMs = options.predict && latency !== null ? Math.min(latency + 8, 250) : 0;
+    const ahead = horizonMs > 0 ? predictor.predict(horizonMs) : null;
+    const view = ahead ? { worldFromCamera: () => ahead, intrinsics: (w, h) => camera.intrinsics(w, h) } : camera;
+    const predicted = ahead ? { horizonMs, presentWorldFromCamera: present } : undefined;
+    return orbitPose(view, { seq, tClientMs, width: conn.params.width, height: conn.params.height, predicted });
   },
   onBinary: (data) => reprojector?.addDepth(data),
   onSession(msg) {
@@ -63,6 +65,8 @@ conn.exposeApi({
       enabled: Boolean(reprojector?.enabled) && !canvas.hidden,
       predict: options.predict,
       horizonMs,
+      /** The pose the frame on screen answers (from its depth message), if known. */
+      shownPoseSeq: reprojector?.currentDepth()?.poseSeq ?? null,
       ...(reprojector ? reprojector.stats : {}),
     };
   },

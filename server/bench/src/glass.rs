@@ -37,7 +37,7 @@ use nephele_farm::{
 use nephele_master::{MasterConfig, web};
 use nephele_protocol::Mode;
 use nephele_renderer::{Instance, Intrinsics, RenderSettings, View, render::psnr_rgb};
-use nephele_wire::{PoseMessage, ToViewer, VIEWER_BACKGROUND, depth::DepthFrame};
+use nephele_wire::{PoseMessage, Predicted, ToViewer, VIEWER_BACKGROUND, depth::DepthFrame};
 use serde::Serialize;
 
 /// What the eye sees at added round trips, four ways (see the module notes).
@@ -277,7 +277,9 @@ async fn stream_run(catalog: &Arc<Catalog>, trace: &Trace, args: &GlassArgs, str
                 let camera = if predict { predictor.predict(horizon).unwrap_or(present) } else { present };
                 seq += 1;
                 run.sent.insert(u64::from(seq), (t_ms, camera, horizon));
-                let pose = PoseMessage { seq, t_client_ms: t_ms, world_from_camera: camera.as_mat4(), intrinsics: stream, world_from_anchor: None };
+                // A predicted camera goes with the present one (the master checks the two agree).
+                let predicted = predict.then(|| Predicted { horizon_ms: horizon, present_world_from_camera: present.as_mat4() });
+                let pose = PoseMessage { seq, t_client_ms: t_ms, world_from_camera: camera.as_mat4(), intrinsics: stream, world_from_anchor: None, predicted };
                 client.send_pose(&pose).await?;
             }
             _ = display_tick.tick() => {

@@ -133,6 +133,7 @@ impl Trace {
             world_from_camera: Mat4::from_cols_array(&self.poses[seq as usize % self.poses.len()]),
             intrinsics: self.intrinsics(width, height),
             world_from_anchor: None,
+            predicted: None,
         }
     }
 }
@@ -355,6 +356,7 @@ pub async fn replay(trace: &Trace, opts: &ReplayOptions, reference: Option<Refer
                     world_from_camera: Mat4::from_cols_array(&trace.poses[next]),
                     intrinsics,
                     world_from_anchor: opts.anchor,
+                    predicted: None,
                 };
                 sent_at.insert(u64::from(seq), (Instant::now(), pose));
                 match opts.stereo_baseline {

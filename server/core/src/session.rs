@@ -53,6 +53,8 @@ pub const IDR_MIN_GAP: Duration = Duration::from_millis(250);
 pub struct PendingPose {
     pub seq: u32,
     pub t_client_ms: f64,
+    /// How far ahead the client predicted these cameras, ms.
+    pub predicted_ms: f64,
     pub views: Arc<[FrameView]>,
     pub instance: Instance,
     pub received_at: Instant,
@@ -233,7 +235,7 @@ impl Session {
         if self.pending.is_some() {
             self.counters.poses_superseded += 1;
         }
-        let pose = PendingPose { seq: msg.seq, t_client_ms: msg.t_client_ms, views: msg.views.into(), instance: msg.instance, received_at: now };
+        let pose = PendingPose { seq: msg.seq, t_client_ms: msg.t_client_ms, predicted_ms: msg.predicted_ms, views: msg.views.into(), instance: msg.instance, received_at: now };
         let previous = self.pending.as_ref().or(self.last_started.as_ref());
         if previous.is_none_or(|p| !p.same_cameras(&pose)) {
             self.still_since = Some(now);
@@ -351,6 +353,7 @@ impl Session {
             batch_views: 0,
             reused: false,
             views: job.pose.views.len() as u32,
+            predicted_ms: job.pose.predicted_ms,
         })
     }
 
@@ -401,6 +404,7 @@ mod tests {
             world_from_camera: view.world_from_camera.as_mat4(),
             intrinsics: view.intrinsics,
             world_from_anchor: None,
+            predicted: None,
         }
         .encode()
     }

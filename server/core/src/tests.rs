@@ -150,7 +150,7 @@ impl Sim {
         u.seq += 1;
         u.azimuth += u.turn_deg;
         let view = View::orbit(DVec3::ZERO, 4.0, u.azimuth, 20.0, Intrinsics::from_fov_x(u.width, u.height, 0.8));
-        PoseMessage { seq: u.seq, t_client_ms: f64::from(u.seq), world_from_camera: view.world_from_camera.as_mat4(), intrinsics: view.intrinsics, world_from_anchor: None }
+        PoseMessage { seq: u.seq, t_client_ms: f64::from(u.seq), world_from_camera: view.world_from_camera.as_mat4(), intrinsics: view.intrinsics, world_from_anchor: None, predicted: None }
             .encode()
     }
 
@@ -698,7 +698,7 @@ fn stereo_and_quilt_frames_are_one_task_each_tiled_into_one_frame() {
     };
     let stereo = MultiViewPose { seq: 1, t_client_ms: 1.0, frame_width: 128, frame_height: 48, views: vec![eye(-0.03, 0), eye(0.03, 64)], world_from_anchor: None };
     sim.core.handle_input(sim.now, Input::Pose { session: "vr".into(), bytes: stereo.encode().into() });
-    let centre_pose = PoseMessage { seq: 1, t_client_ms: 1.0, world_from_camera: centre.world_from_camera.as_mat4(), intrinsics: k, world_from_anchor: None };
+    let centre_pose = PoseMessage { seq: 1, t_client_ms: 1.0, world_from_camera: centre.world_from_camera.as_mat4(), intrinsics: k, world_from_anchor: None, predicted: None };
     sim.core.handle_input(sim.now, Input::Pose { session: "q".into(), bytes: centre_pose.encode().into() });
     sim.run_until(500);
     for (session, views) in [("vr", 2usize), ("q", 45)] {

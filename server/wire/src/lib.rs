@@ -16,6 +16,13 @@
 //! | 80..96    | `f32`×4 fx, fy, cx, cy in pixels                                   |
 //! | 96..104   | `u32`×2 viewport width, height in pixels                           |
 //! | 104..168  | optional `f32`×16 world_from_anchor (rotation, translation, scale) |
+//! | last 72   | optional prediction: `f64` horizon ms, `f32`×16 the present world_from_camera |
+//!
+//! (so 104, 168, 176 or 240 bytes). With a prediction, the camera at 16..80 is the one the
+//! client predicts for the moment this frame will be shown, `horizon` ms after
+//! `t_client_ms`, and the master renders it; the present camera is checked (rigid, at most
+//! [`MAX_PREDICTED_TURN_DEG`] from the predicted one, horizon within
+//! `nephele_limits::MAX_PREDICTION_MS`) and the horizon echoed in the frame info.
 //!
 //! or, for several views in one frame (a headset's two eyes), version 2: 32 + 144·n bytes,
 //! or 64 more with an anchor:
@@ -75,14 +82,29 @@ pub const POSE_V2_HEADER_LEN: usize = 32;
 /// One view of a multi-view pose message, bytes.
 pub const POSE_V2_VIEW_LEN: usize = 144;
 
+/// Bytes a prediction adds to an `NPO1` message.
+pub const POSE_PREDICTION_LEN: usize = 72;
+/// Largest turn a master accepts between a client's present and predicted camera, degrees.
+pub const MAX_PREDICTED_TURN_DEG: f64 = 90.0;
+
 /// One decoded pose message. Not yet validated as a camera: see [`PoseMessage::view`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PoseMessage {
     pub seq: u32,
     pub t_client_ms: f64,
+    /// The camera to render: the predicted one when `predicted` is there.
     pub world_from_camera: Mat4,
     pub intrinsics: Intrinsics,
     pub world_from_anchor: Option<Mat4>,
+    pub predicted: Option<Predicted>,
+}
+
+/// What a predicting client adds to its pose: how far ahead it predicted, and where the
+/// camera is now.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Predicted {
+    pub horizon_ms: f64,
+    pub present_world_from_camera: Mat4,
 }
 
 /// Why a pose message was refused; sent back to the client as `bad_pose`.
@@ -110,6 +132,8 @@ pub enum PoseRejection {
     Camera(String),
     #[error("plane anchor: {0}")]
     Anchor(String),
+    #[error("prediction: {0}")]
+    Prediction(String),
 }
 
 impl PoseMessage {
@@ -132,14 +156,27 @@ impl PoseMessage {
                 out.extend_from_slice(&v.to_le_bytes());
             }
         }
+        if let Some(p) = self.predicted {
+            out.extend_from_slice(&p.horizon_ms.to_le_bytes());
+            for v in p.present_world_from_camera.to_cols_array() {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
         out
     }
 
     /// Parses the byte layout only (length, magic); values are checked by [`Self::view`].
     pub fn decode(bytes: &[u8]) -> Result<Self, PoseRejection> {
-        if bytes.len() != POSE_LEN && bytes.len() != POSE_WITH_ANCHOR_LEN {
-            return Err(PoseRejection::Length { len: bytes.len(), expected: format!("{POSE_LEN} or {POSE_WITH_ANCHOR_LEN}") });
-        }
+        let (anchor, predicted) = match bytes.len() {
+            POSE_LEN => (false, false),
+            POSE_WITH_ANCHOR_LEN => (true, false),
+            n if n == POSE_LEN + POSE_PREDICTION_LEN => (false, true),
+            n if n == POSE_WITH_ANCHOR_LEN + POSE_PREDICTION_LEN => (true, true),
+            len => {
+                let expected = format!("{POSE_LEN}, {POSE_WITH_ANCHOR_LEN}, {} or {} (with a prediction)", POSE_LEN + POSE_PREDICTION_LEN, POSE_WITH_ANCHOR_LEN + POSE_PREDICTION_LEN);
+                return Err(PoseRejection::Length { len, expected });
+            }
+        };
         if &bytes[0..4] != POSE_MAGIC {
             return Err(PoseRejection::Magic);
         }
@@ -158,7 +195,11 @@ impl PoseMessage {
                 width: u32_at(96),
                 height: u32_at(100),
             },
-            world_from_anchor: (bytes.len() == POSE_WITH_ANCHOR_LEN).then(|| mat_at(104)),
+            world_from_anchor: anchor.then(|| mat_at(104)),
+            predicted: predicted.then(|| {
+                let at = if anchor { POSE_WITH_ANCHOR_LEN } else { POSE_LEN };
+                Predicted { horizon_ms: f64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes")), present_world_from_camera: mat_at(at + 8) }
+            }),
         })
     }
 
@@ -178,9 +219,35 @@ impl PoseMessage {
                 session_height: session_size.1,
             });
         }
-        Ok((checked_camera(self.world_from_camera, k)?, checked_anchor(self.world_from_anchor)?))
+        let view = checked_camera(self.world_from_camera, k)?;
+        if let Some(p) = self.predicted {
+            check_prediction(&p, &view)?;
+        }
+        Ok((view, checked_anchor(self.world_from_anchor)?))
+    }
+
+    /// How far ahead the camera was predicted, ms (0 without a prediction).
+    pub fn predicted_ms(&self) -> f64 {
+        self.predicted.map_or(0.0, |p| p.horizon_ms)
     }
 }
+
+/// A prediction a master accepts: a horizon within the limit, a present camera that is a
+/// camera, not further than [`MAX_PREDICTED_TURN_DEG`] from the predicted one.
+fn check_prediction(p: &Predicted, predicted: &View) -> Result<(), PoseRejection> {
+    let max = nephele_limits::MAX_PREDICTION_MS;
+    if !p.horizon_ms.is_finite() || !(0.0..=max).contains(&p.horizon_ms) {
+        return Err(PoseRejection::Prediction(format!("horizon {} ms is outside 0..={max} ms", p.horizon_ms)));
+    }
+    let present = checked_camera(p.present_world_from_camera, predicted.intrinsics).map_err(|e| PoseRejection::Prediction(format!("present camera: {e}")))?;
+    let (a, b) = (DQuat::from_mat4(&present.world_from_camera), DQuat::from_mat4(&predicted.world_from_camera));
+    let turn = a.angle_between(b).to_degrees();
+    if turn > MAX_PREDICTED_TURN_DEG {
+        return Err(PoseRejection::Prediction(format!("the predicted camera turns {turn:.0}° from the present one; at most {MAX_PREDICTED_TURN_DEG}°")));
+    }
+    Ok(())
+}
+
 
 /// A rectangle of the streamed frame, pixels, origin top-left.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -328,6 +395,8 @@ pub struct FrameView {
 pub struct CheckedPose {
     pub seq: u32,
     pub t_client_ms: f64,
+    /// How far ahead the client predicted the camera, ms (0: the present camera).
+    pub predicted_ms: f64,
     pub views: Vec<FrameView>,
     pub instance: Instance,
 }
@@ -368,13 +437,13 @@ pub fn check_pose(bytes: &[u8], layout: &FrameLayout) -> Result<CheckedPose, Pos
             views.push(FrameView { view, viewport: r });
         }
         let instance = checked_anchor(m.world_from_anchor)?;
-        return Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, views, instance });
+        return Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, predicted_ms: 0.0, views, instance });
     }
     let m = PoseMessage::decode(bytes)?;
     match *layout {
         FrameLayout::Views { .. } => {
             let (view, instance) = m.view((width, height))?;
-            Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, views: vec![FrameView { view, viewport: Viewport::full(width, height) }], instance })
+            Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, predicted_ms: m.predicted_ms(), views: vec![FrameView { view, viewport: Viewport::full(width, height) }], instance })
         }
         FrameLayout::Quilt { layout: q, focal_target, min_focal, .. } => {
             let (tile_w, tile_h) = (width / q.cols, height / q.rows);
@@ -391,7 +460,7 @@ pub fn check_pose(bytes: &[u8], layout: &FrameLayout) -> Result<CheckedPose, Pos
                     Ok(FrameView { view, viewport: Viewport { x, y, width: tile_w, height: tile_h } })
                 })
                 .collect::<Result<_, PoseRejection>>()?;
-            Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, views, instance })
+            Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, predicted_ms: m.predicted_ms(), views, instance })
         }
     }
 }
@@ -518,6 +587,9 @@ pub struct FrameInfo {
     /// Views in the frame (2 for stereo, cols × rows for a quilt).
     #[serde(default = "one")]
     pub views: u32,
+    /// How far ahead the client predicted the camera this frame shows, ms (0: none).
+    #[serde(default)]
+    pub predicted_ms: f64,
 }
 
 fn one() -> u32 {
@@ -584,7 +656,34 @@ mod tests {
             world_from_camera: view.world_from_camera.as_mat4(),
             intrinsics: view.intrinsics,
             world_from_anchor: None,
+            predicted: None,
         }
+    }
+
+    #[test]
+    fn a_predicted_pose_round_trips_and_implausible_ones_are_refused() {
+        let p = sample();
+        let present = (p.world_from_camera.as_dmat4() * DMat4::from_rotation_y(-0.2)).as_mat4();
+        let anchor = Mat4::from_scale(glam::Vec3::splat(2.0));
+        for world_from_anchor in [None, Some(anchor)] {
+            let q = PoseMessage { world_from_anchor, predicted: Some(Predicted { horizon_ms: 80.0, present_world_from_camera: present }), ..p };
+            let bytes = q.encode();
+            assert_eq!(bytes.len(), if world_from_anchor.is_some() { 240 } else { 176 });
+            assert_eq!(PoseMessage::decode(&bytes).unwrap(), q);
+            let checked = check_pose(&bytes, &FrameLayout::Views { width: 64, height: 48 }).unwrap();
+            assert_eq!(checked.predicted_ms, 80.0);
+            // The predicted camera is the one rendered.
+            assert!((checked.views[0].view.world_from_camera - p.world_from_camera.as_dmat4()).to_cols_array().iter().all(|x| x.abs() < 1e-5));
+        }
+        let refuse = |predicted: Predicted| PoseMessage { predicted: Some(predicted), ..p }.view((64, 48)).unwrap_err().to_string();
+        let with = |horizon_ms: f64, present_world_from_camera: Mat4| Predicted { horizon_ms, present_world_from_camera };
+        assert!(refuse(with(f64::NAN, present)).contains("horizon NaN ms is outside 0..=500 ms"));
+        assert!(refuse(with(-1.0, present)).contains("outside"));
+        assert!(refuse(with(1e6, present)).contains("outside"));
+        assert!(refuse(with(50.0, Mat4::from_cols_array(&[f32::NAN; 16]))).starts_with("prediction: present camera"));
+        assert!(refuse(with(50.0, present * Mat4::from_scale(glam::Vec3::new(1.0, 3.0, 1.0)))).starts_with("prediction: present camera"));
+        let behind = (p.world_from_camera.as_dmat4() * DMat4::from_rotation_y(2.5)).as_mat4();
+        assert!(refuse(with(50.0, behind)).contains("turns 143° from the present one; at most 90°"), "{}", refuse(with(50.0, behind)));
     }
 
     #[test]
