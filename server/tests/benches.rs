@@ -88,7 +88,7 @@ fn bench_stream() {
 #[test]
 fn bench_glass() {
     let (r, table) = bench(&["glass", "--asset", "builtin:trio-small", "--size", "64x48", "--backend", "cpu", "--rtts", "0,50"]);
-    assert_eq!(rows(&r, "rows", &["psnr_mean_db", "psnr_p5_db", "pose_age_mean_ms", "rotation_error_mean_deg", "video_bytes_per_frame", "depth_bytes_per_frame", "learnt_latency_ms"]), 8);
+    assert_eq!(rows(&r, "rows", &["psnr_mean_db", "psnr_p5_db", "pose_age_mean_ms", "rotation_error_mean_deg", "video_bytes_per_frame", "depth_bytes_per_frame", "render_ms_mean", "learnt_latency_ms"]), 8);
     for row in r["rows"].as_array().unwrap() {
         assert!(row["display_frames"].as_u64().unwrap() > 100, "{row}");
         assert_eq!(row["missing_depth"], 0, "{row}");

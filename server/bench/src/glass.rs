@@ -121,6 +121,8 @@ pub struct GlassRow {
     pub missing_depth: usize,
     pub video_bytes_per_frame: f64,
     pub depth_bytes_per_frame: f64,
+    /// The master's mean render time of the frames it rendered (the guard band's cost), ms.
+    pub render_ms_mean: f64,
     /// Mean pose→display latency the client learnt (and predicted by in predict modes), ms.
     pub learnt_latency_ms: f64,
 }
@@ -165,6 +167,7 @@ struct Run {
     depth: HashMap<u64, DepthFrame>,
     video_bytes: Vec<usize>,
     depth_bytes: Vec<usize>,
+    render_ms: Vec<f64>,
     latency_ms: Vec<f64>,
 }
 
@@ -257,7 +260,7 @@ async fn stream_run(catalog: &Arc<Catalog>, trace: &Trace, args: &GlassArgs, str
     let net = delayed_net(Duration::from_millis(u64::from(rtt_ms))).await?;
     let mut client = StreamClient::connect_with(&opts, &net).await.context("connecting through the delayed socket")?;
 
-    let mut run = Run { decoded: Vec::new(), shown: Vec::new(), sent: HashMap::new(), depth: HashMap::new(), video_bytes: Vec::new(), depth_bytes: Vec::new(), latency_ms: Vec::new() };
+    let mut run = Run { decoded: Vec::new(), shown: Vec::new(), sent: HashMap::new(), depth: HashMap::new(), video_bytes: Vec::new(), depth_bytes: Vec::new(), render_ms: Vec::new(), latency_ms: Vec::new() };
     let mut predictor = PosePredictor::new();
     let mut learnt_ms: Option<f64> = None;
     let start = tokio::time::Instant::now();
@@ -310,6 +313,9 @@ async fn stream_run(catalog: &Arc<Catalog>, trace: &Trace, args: &GlassArgs, str
                 Some(ToViewer::Frame(info)) => {
                     run.video_bytes.push(info.times.bytes);
                     run.depth_bytes.push(info.times.depth_bytes);
+                    if !info.reused {
+                        run.render_ms.push(info.times.render_ms);
+                    }
                 }
                 Some(ToViewer::Error { code, message }) => bail!("the master refused a pose ({code}): {message}"),
                 Some(_) => {}
@@ -373,6 +379,7 @@ fn score(run: &Run, mode: GlassMode, rtt_ms: u32, trace: &Trace, display: &Intri
         missing_depth,
         video_bytes_per_frame: bytes(&run.video_bytes),
         depth_bytes_per_frame: bytes(&run.depth_bytes),
+        render_ms_mean: mean(&run.render_ms),
         learnt_latency_ms: mean(&run.latency_ms),
     }
 }
@@ -384,12 +391,12 @@ pub fn format_tables(r: &GlassReport) -> String {
         "asset {}, backend {}, trace {}, display {}x{} at {} Hz, stream {}x{} (guard band {} a side) at {} fps\n",
         r.asset, r.backend, r.trace, r.display.0, r.display.1, r.display_hz, r.stream.0, r.stream.1, r.overscan, r.fps
     );
-    let _ = writeln!(out, "| RTT ms | mode | PSNR mean dB | PSNR p5 dB | pose age mean / p95 ms | rotation error ° | frames | no depth | video B/frame | depth B/frame | latency learnt ms |");
-    let _ = writeln!(out, "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(out, "| RTT ms | mode | PSNR mean dB | PSNR p5 dB | pose age mean / p95 ms | rotation error ° | frames | no depth | video B/frame | depth B/frame | render ms | latency learnt ms |");
+    let _ = writeln!(out, "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for row in &r.rows {
         let _ = writeln!(
             out,
-            "| {} | {} | {:.2} | {:.2} | {:.1} / {:.1} | {:.2} | {} | {} | {:.0} | {:.0} | {:.1} |",
+            "| {} | {} | {:.2} | {:.2} | {:.1} / {:.1} | {:.2} | {} | {} | {:.0} | {:.0} | {:.1} | {:.1} |",
             row.rtt_ms,
             row.mode.name(),
             row.psnr_mean_db,
@@ -401,6 +408,7 @@ pub fn format_tables(r: &GlassReport) -> String {
             row.missing_depth,
             row.video_bytes_per_frame,
             row.depth_bytes_per_frame,
+            row.render_ms_mean,
             row.learnt_latency_ms
         );
     }
