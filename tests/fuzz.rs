@@ -35,7 +35,7 @@ fn seeds() -> Vec<Vec<u8>> {
     let k = Intrinsics::from_fov_x(64, 48, 0.8);
     let v = View::orbit(DVec3::ZERO, 4.0, 30.0, 20.0, k);
     let eye = |x| PoseView { world_from_camera: v.world_from_camera.as_mat4(), clip_from_camera: projection_from_intrinsics(&k, 0.1, 10.0), viewport: Viewport { x, y: 0, width: 64, height: 48 } };
-    out.push(MultiViewPose { seq: 6, t_client_ms: 2.0, frame_width: 128, frame_height: 48, views: vec![eye(0), eye(64)], world_from_anchor: Some(glam::Mat4::IDENTITY) }.encode());
+    out.push(MultiViewPose { seq: 6, t_client_ms: 2.0, frame_width: 128, frame_height: 48, views: vec![eye(0), eye(64)], world_from_anchor: Some(glam::Mat4::IDENTITY), predicted: None }.encode());
     out
 }
 

@@ -79,7 +79,7 @@ async fn both_eyes_render_in_one_frame_and_match_direct_renders() {
             .zip([0, eye_w])
             .map(|(e, x)| PoseView { world_from_camera: e.world_from_camera.as_mat4(), clip_from_camera: projection, viewport: Viewport { x, y: 0, width: eye_w, height: eye_h } })
             .collect();
-        MultiViewPose { seq, t_client_ms: f64::from(seq), frame_width: 2 * eye_w, frame_height: eye_h, views, world_from_anchor: None }.encode()
+        MultiViewPose { seq, t_client_ms: f64::from(seq), frame_width: 2 * eye_w, frame_height: eye_h, views, world_from_anchor: None, predicted: None }.encode()
     };
     let frame = stream_still(&mut client, 2.0, pose).await;
     assert_eq!((frame.width, frame.height), (2 * eye_w, eye_h));
@@ -164,7 +164,7 @@ async fn bad_multi_view_poses_get_words_and_the_stream_goes_on() {
     let head = View::orbit(DVec3::ZERO, 3.0, 10.0, 10.0, k);
     let good = |seq, x1: u32| {
         let v = |x| PoseView { world_from_camera: head.world_from_camera.as_mat4(), clip_from_camera: projection_from_intrinsics(&k, 0.1, 50.0), viewport: Viewport { x, y: 0, width: 128, height: 128 } };
-        MultiViewPose { seq, t_client_ms: 1.0, frame_width: 256, frame_height: 128, views: vec![v(0), v(x1)], world_from_anchor: None }
+        MultiViewPose { seq, t_client_ms: 1.0, frame_width: 256, frame_height: 128, views: vec![v(0), v(x1)], world_from_anchor: None, predicted: None }
     };
     client.send_bytes(good(1, 128).encode().into()).await.unwrap();
     let mut nan = good(2, 128);

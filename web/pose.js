@@ -19,6 +19,8 @@ export const POSE_ANCHOR_LEN = 64;
 export const MAX_POSE_VIEWS = 8;
 /** NPO2 flags bit 0: a world_from_anchor follows the views. */
 export const FLAG_ANCHOR = 1;
+/** NPO2 flags bit 1: a prediction follows (horizon, then each view's present camera). */
+export const FLAG_PREDICTED = 2;
 
 const putMagic = (v, text) => { for (let i = 0; i < 4; i++) v.setUint8(i, text.charCodeAt(i)); };
 const putMat4 = (v, at, m) => { for (let i = 0; i < 16; i++) v.setFloat32(at + 4 * i, m[i], true); };
@@ -57,13 +59,17 @@ export function encodePose({ seq, tClientMs, worldFromCamera, intrinsics, width,
  * u32 view count n (1..8) | u32 flags (bit 0: anchor follows) |
  * n × { f32×16 world_from_camera | f32×16 clip_from_camera (GL projection) |
  *       u32×4 viewport x y w h (pixels of the frame, origin top-left, y down) } |
- * optional f32×16 world_from_anchor.
- * `views` is [{ worldFromCamera, clipFromCamera, viewport: [x, y, w, h] }].
+ * optional f32×16 world_from_anchor |
+ * optional prediction: f64 horizon ms, then per view f32×16 its present world_from_camera.
+ * `views` is [{ worldFromCamera, clipFromCamera, viewport: [x, y, w, h] }] (the predicted
+ * cameras when `predicted` is { horizonMs, presentViews: [worldFromCamera per view] }).
  */
-export function encodePoseViews({ seq, tClientMs, width, height, views, worldFromAnchor }) {
+export function encodePoseViews({ seq, tClientMs, width, height, views, worldFromAnchor, predicted }) {
   const n = views.length;
   if (n < 1 || n > MAX_POSE_VIEWS) throw new RangeError(`NPO2 carries 1..${MAX_POSE_VIEWS} views, not ${n}`);
-  const len = POSE_VIEWS_HEADER_LEN + POSE_VIEW_LEN * n + (worldFromAnchor ? POSE_ANCHOR_LEN : 0);
+  if (predicted && predicted.presentViews.length !== n) throw new RangeError('a prediction needs one present camera per view');
+  const tail = predicted ? 8 + 64 * n : 0;
+  const len = POSE_VIEWS_HEADER_LEN + POSE_VIEW_LEN * n + (worldFromAnchor ? POSE_ANCHOR_LEN : 0) + tail;
   const bytes = new Uint8Array(len);
   const v = new DataView(bytes.buffer);
   putMagic(v, 'NPO2');
@@ -72,14 +78,18 @@ export function encodePoseViews({ seq, tClientMs, width, height, views, worldFro
   v.setUint32(16, width, true);
   v.setUint32(20, height, true);
   v.setUint32(24, n, true);
-  v.setUint32(28, worldFromAnchor ? FLAG_ANCHOR : 0, true);
+  v.setUint32(28, (worldFromAnchor ? FLAG_ANCHOR : 0) | (predicted ? FLAG_PREDICTED : 0), true);
   views.forEach(({ worldFromCamera, clipFromCamera, viewport }, i) => {
     const at = POSE_VIEWS_HEADER_LEN + POSE_VIEW_LEN * i;
     putMat4(v, at, worldFromCamera);
     putMat4(v, at + 64, clipFromCamera);
     for (let k = 0; k < 4; k++) v.setUint32(at + 128 + 4 * k, Math.round(viewport[k]), true);
   });
-  if (worldFromAnchor) putMat4(v, len - POSE_ANCHOR_LEN, worldFromAnchor);
+  if (worldFromAnchor) putMat4(v, len - tail - POSE_ANCHOR_LEN, worldFromAnchor);
+  if (predicted) {
+    v.setFloat64(len - tail, predicted.horizonMs, true);
+    predicted.presentViews.forEach((m, i) => putMat4(v, len - tail + 8 + 64 * i, m));
+  }
   return bytes;
 }
 

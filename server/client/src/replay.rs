@@ -504,7 +504,7 @@ fn stereo_pose(centre: &PoseMessage, width: u32, height: u32, baseline: f32) -> 
             viewport: Viewport { x, y: 0, width: eye_w, height },
         })
         .collect();
-    MultiViewPose { seq: centre.seq, t_client_ms: centre.t_client_ms, frame_width: width, frame_height: height, views, world_from_anchor: centre.world_from_anchor }
+    MultiViewPose { seq: centre.seq, t_client_ms: centre.t_client_ms, frame_width: width, frame_height: height, views, world_from_anchor: centre.world_from_anchor, predicted: None }
 }
 
 /// The AR page's key, in Rust: how strongly a pixel is the green screen, 0..1. Green

@@ -696,7 +696,7 @@ fn stereo_and_quilt_frames_are_one_task_each_tiled_into_one_frame() {
         clip_from_camera: proj,
         viewport: Viewport { x, y: 0, width: 64, height: 48 },
     };
-    let stereo = MultiViewPose { seq: 1, t_client_ms: 1.0, frame_width: 128, frame_height: 48, views: vec![eye(-0.03, 0), eye(0.03, 64)], world_from_anchor: None };
+    let stereo = MultiViewPose { seq: 1, t_client_ms: 1.0, frame_width: 128, frame_height: 48, views: vec![eye(-0.03, 0), eye(0.03, 64)], world_from_anchor: None, predicted: None };
     sim.core.handle_input(sim.now, Input::Pose { session: "vr".into(), bytes: stereo.encode().into() });
     let centre_pose = PoseMessage { seq: 1, t_client_ms: 1.0, world_from_camera: centre.world_from_camera.as_mat4(), intrinsics: k, world_from_anchor: None, predicted: None };
     sim.core.handle_input(sim.now, Input::Pose { session: "q".into(), bytes: centre_pose.encode().into() });

@@ -34,9 +34,10 @@
 //! | 8..16     | `f64` client timestamp, ms                                         |
 //! | 16..24    | `u32`×2 frame width, height (the session's size)                   |
 //! | 24..28    | `u32` view count n, 1..=[`MAX_VIEWS_PER_POSE`]                     |
-//! | 28..32    | `u32` flags: bit 0 = an anchor follows the views; others 0         |
+//! | 28..32    | `u32` flags: bit 0 = an anchor follows the views; bit 1 = a prediction follows; others 0 |
 //! | per view  | `f32`×16 world_from_camera; `f32`×16 clip_from_camera (the GL/WebXR projection, column-major: perspective, maybe asymmetric, no skew); `u32`×4 viewport x, y, width, height in frame pixels, origin top-left |
-//! | last 64   | optional `f32`×16 world_from_anchor                                |
+//! | then 64   | optional `f32`×16 world_from_anchor                                |
+//! | last 8+64n| optional prediction: `f64` horizon ms, then per view `f32`×16 its present world_from_camera (the views' cameras are then the predicted ones) |
 //!
 //! Viewports lie inside the frame and do not overlap; each view is rendered at its
 //! viewport's size (projection → pinhole: `nephele_renderer::views`). In `quilt` mode the
@@ -116,7 +117,7 @@ pub enum PoseRejection {
     Magic,
     #[error("pose message has {count} views; 1..={MAX_VIEWS_PER_POSE} are allowed")]
     ViewCount { count: u64 },
-    #[error("pose message flags {flags:#x} are not known (only bit 0, anchor, is)")]
+    #[error("pose message flags {flags:#x} are not known (only bit 0, anchor, and bit 1, prediction, are)")]
     Flags { flags: u32 },
     #[error("view {index}: viewport {x},{y} {width}x{height} {why}")]
     ViewportRect { index: usize, x: u32, y: u32, width: u32, height: u32, why: String },
@@ -221,7 +222,7 @@ impl PoseMessage {
         }
         let view = checked_camera(self.world_from_camera, k)?;
         if let Some(p) = self.predicted {
-            check_prediction(&p, &view)?;
+            check_prediction(p.horizon_ms, p.present_world_from_camera, &view)?;
         }
         Ok((view, checked_anchor(self.world_from_anchor)?))
     }
@@ -234,12 +235,12 @@ impl PoseMessage {
 
 /// A prediction a master accepts: a horizon within the limit, a present camera that is a
 /// camera, not further than [`MAX_PREDICTED_TURN_DEG`] from the predicted one.
-fn check_prediction(p: &Predicted, predicted: &View) -> Result<(), PoseRejection> {
+fn check_prediction(horizon_ms: f64, present_world_from_camera: Mat4, predicted: &View) -> Result<(), PoseRejection> {
     let max = nephele_limits::MAX_PREDICTION_MS;
-    if !p.horizon_ms.is_finite() || !(0.0..=max).contains(&p.horizon_ms) {
-        return Err(PoseRejection::Prediction(format!("horizon {} ms is outside 0..={max} ms", p.horizon_ms)));
+    if !horizon_ms.is_finite() || !(0.0..=max).contains(&horizon_ms) {
+        return Err(PoseRejection::Prediction(format!("horizon {horizon_ms} ms is outside 0..={max} ms")));
     }
-    let present = checked_camera(p.present_world_from_camera, predicted.intrinsics).map_err(|e| PoseRejection::Prediction(format!("present camera: {e}")))?;
+    let present = checked_camera(present_world_from_camera, predicted.intrinsics).map_err(|e| PoseRejection::Prediction(format!("present camera: {e}")))?;
     let (a, b) = (DQuat::from_mat4(&present.world_from_camera), DQuat::from_mat4(&predicted.world_from_camera));
     let turn = a.angle_between(b).to_degrees();
     if turn > MAX_PREDICTED_TURN_DEG {
@@ -290,6 +291,8 @@ pub struct MultiViewPose {
     pub frame_height: u32,
     pub views: Vec<PoseView>,
     pub world_from_anchor: Option<Mat4>,
+    /// With a prediction: the horizon, ms, and each view's present camera (one per view).
+    pub predicted: Option<(f64, Vec<Mat4>)>,
 }
 
 impl MultiViewPose {
@@ -298,7 +301,7 @@ impl MultiViewPose {
         out.extend_from_slice(POSE_V2_MAGIC);
         out.extend_from_slice(&self.seq.to_le_bytes());
         out.extend_from_slice(&self.t_client_ms.to_le_bytes());
-        let flags = u32::from(self.world_from_anchor.is_some());
+        let flags = u32::from(self.world_from_anchor.is_some()) | (u32::from(self.predicted.is_some()) << 1);
         for v in [self.frame_width, self.frame_height, self.views.len() as u32, flags] {
             out.extend_from_slice(&v.to_le_bytes());
         }
@@ -312,6 +315,12 @@ impl MultiViewPose {
         }
         if let Some(a) = self.world_from_anchor {
             for v in a.to_cols_array() {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        if let Some((horizon_ms, present)) = &self.predicted {
+            out.extend_from_slice(&horizon_ms.to_le_bytes());
+            for v in present.iter().flat_map(|m| m.to_cols_array()) {
                 out.extend_from_slice(&v.to_le_bytes());
             }
         }
@@ -333,11 +342,12 @@ impl MultiViewPose {
             return Err(PoseRejection::ViewCount { count: u64::from(count) });
         }
         let flags = u32_at(28);
-        if flags & !1 != 0 {
+        if flags & !3 != 0 {
             return Err(PoseRejection::Flags { flags });
         }
         let n = count as usize;
-        let expected = POSE_V2_HEADER_LEN + POSE_V2_VIEW_LEN * n + if flags & 1 == 1 { 64 } else { 0 };
+        let prediction_len = 8 + 64 * n;
+        let expected = POSE_V2_HEADER_LEN + POSE_V2_VIEW_LEN * n + if flags & 1 == 1 { 64 } else { 0 } + if flags & 2 == 2 { prediction_len } else { 0 };
         if bytes.len() != expected {
             return Err(PoseRejection::Length { len: bytes.len(), expected: format!("{expected} for NPO2 with {n} views (flags {flags})") });
         }
@@ -360,6 +370,11 @@ impl MultiViewPose {
             frame_height: u32_at(20),
             views,
             world_from_anchor: (flags & 1 == 1).then(|| mat_at(anchor_at)),
+            predicted: (flags & 2 == 2).then(|| {
+                let at = anchor_at + if flags & 1 == 1 { 64 } else { 0 };
+                let horizon = f64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"));
+                (horizon, (0..n).map(|i| mat_at(at + 8 + 64 * i)).collect())
+            }),
         })
     }
 }
@@ -437,7 +452,17 @@ pub fn check_pose(bytes: &[u8], layout: &FrameLayout) -> Result<CheckedPose, Pos
             views.push(FrameView { view, viewport: r });
         }
         let instance = checked_anchor(m.world_from_anchor)?;
-        return Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, predicted_ms: 0.0, views, instance });
+        let mut predicted_ms = 0.0;
+        if let Some((horizon_ms, present)) = &m.predicted {
+            for (index, (p, v)) in present.iter().zip(&views).enumerate() {
+                check_prediction(*horizon_ms, *p, &v.view).map_err(|e| match e {
+                    PoseRejection::Prediction(why) => PoseRejection::Prediction(format!("view {index}: {why}")),
+                    other => other,
+                })?;
+            }
+            predicted_ms = *horizon_ms;
+        }
+        return Ok(CheckedPose { seq: m.seq, t_client_ms: m.t_client_ms, predicted_ms, views, instance });
     }
     let m = PoseMessage::decode(bytes)?;
     match *layout {
@@ -755,6 +780,28 @@ mod tests {
             frame_height: 48,
             views: vec![eye(-0.03, 0), eye(0.03, 64)],
             world_from_anchor: anchor.then(|| Mat4::from_scale(glam::Vec3::splat(2.0))),
+            predicted: None,
+        }
+    }
+
+    #[test]
+    fn multi_view_predictions_round_trip_and_are_checked_per_view() {
+        for anchor in [false, true] {
+            let p = stereo(anchor);
+            let present: Vec<Mat4> = p.views.iter().map(|v| (v.world_from_camera.as_dmat4() * DMat4::from_rotation_y(0.1)).as_mat4()).collect();
+            let q = MultiViewPose { predicted: Some((60.0, present.clone())), ..p.clone() };
+            let bytes = q.encode();
+            assert_eq!(bytes.len(), 32 + 2 * 144 + if anchor { 64 } else { 0 } + 8 + 2 * 64);
+            assert_eq!(MultiViewPose::decode(&bytes).unwrap(), q);
+            assert_eq!(check_pose(&bytes, &STEREO).unwrap().predicted_ms, 60.0);
+            // One eye's present camera turned away, a horizon past the limit, a cut message.
+            let mut wild = present.clone();
+            wild[1] = (p.views[1].world_from_camera.as_dmat4() * DMat4::from_rotation_y(2.0)).as_mat4();
+            let err = check_pose(&MultiViewPose { predicted: Some((60.0, wild)), ..p.clone() }.encode(), &STEREO).unwrap_err().to_string();
+            assert!(err.starts_with("prediction: view 1: the predicted camera turns 115°"), "{err}");
+            let err = check_pose(&MultiViewPose { predicted: Some((600.0, present.clone())), ..p.clone() }.encode(), &STEREO).unwrap_err().to_string();
+            assert!(err.contains("horizon 600 ms is outside 0..=500 ms"), "{err}");
+            assert!(matches!(check_pose(&bytes[..bytes.len() - 64], &STEREO), Err(PoseRejection::Length { .. })));
         }
     }
 
@@ -795,7 +842,7 @@ mod tests {
         let bytes = good.encode();
         assert!(matches!(check_pose(&bytes[..bytes.len() - 1], &STEREO), Err(PoseRejection::Length { .. })));
         let mut flagged = bytes.clone();
-        flagged[28] = 6;
+        flagged[28] = 4;
         assert!(matches!(check_pose(&flagged, &STEREO), Err(PoseRejection::Flags { .. })));
         // Frame size differs from the session's.
         assert!(refuse(&MultiViewPose { frame_width: 256, ..good.clone() }).contains("differs from the session's 128x48"));
