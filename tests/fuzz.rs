@@ -25,17 +25,24 @@ const LAYOUTS: [FrameLayout; 2] = [
     FrameLayout::Quilt { width: 320, height: 432, layout: QuiltLayout { cols: 5, rows: 9, cone_rad: 0.7 }, focal_target: DVec3::ZERO, min_focal: 0.1 },
 ];
 
-/// Valid messages to mutate: NPO1 at both layouts' sizes and NPO2 with two eyes and an anchor.
+/// Valid messages to mutate: NPO1 at both layouts' sizes (and with a prediction), NPO2 with two
+/// eyes and an anchor (and with a prediction).
 fn seeds() -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     for (w, h) in [(128, 48), (64, 48)] {
         let v = View::orbit(DVec3::ZERO, 4.0, 30.0, 20.0, Intrinsics::from_fov_x(w, h, 0.8));
-        out.push(PoseMessage { seq: 5, t_client_ms: 1.0, world_from_camera: v.world_from_camera.as_mat4(), intrinsics: v.intrinsics, world_from_anchor: None, predicted: None }.encode());
+        let m = PoseMessage { seq: 5, t_client_ms: 1.0, world_from_camera: v.world_from_camera.as_mat4(), intrinsics: v.intrinsics, world_from_anchor: None, predicted: None };
+        out.push(m.encode());
+        let predicted = nephele_wire::Predicted { horizon_ms: 70.0, present_world_from_camera: v.world_from_camera.as_mat4() };
+        out.push(PoseMessage { predicted: Some(predicted), ..m }.encode());
     }
     let k = Intrinsics::from_fov_x(64, 48, 0.8);
     let v = View::orbit(DVec3::ZERO, 4.0, 30.0, 20.0, k);
     let eye = |x| PoseView { world_from_camera: v.world_from_camera.as_mat4(), clip_from_camera: projection_from_intrinsics(&k, 0.1, 10.0), viewport: Viewport { x, y: 0, width: 64, height: 48 } };
-    out.push(MultiViewPose { seq: 6, t_client_ms: 2.0, frame_width: 128, frame_height: 48, views: vec![eye(0), eye(64)], world_from_anchor: Some(glam::Mat4::IDENTITY), predicted: None }.encode());
+    let stereo = MultiViewPose { seq: 6, t_client_ms: 2.0, frame_width: 128, frame_height: 48, views: vec![eye(0), eye(64)], world_from_anchor: Some(glam::Mat4::IDENTITY), predicted: None };
+    out.push(stereo.encode());
+    let present = vec![v.world_from_camera.as_mat4(); 2];
+    out.push(MultiViewPose { predicted: Some((70.0, present)), ..stereo }.encode());
     out
 }
 
