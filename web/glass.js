@@ -378,6 +378,7 @@ export class Reprojector {
     }
   }
 
+  /** Forget the stream's depth and picture (a new session: its RTP ticks start again). */
   reset() {
     this.depth.clear();
     this.frame = null;
@@ -396,7 +397,10 @@ export class Reprojector {
   currentDepth() {
     const offset = this.rtpOffset?.();
     if (!this.frame || this.frame.rtp === null || offset === null || offset === undefined) return null;
-    return this.depth.get((this.frame.rtp - offset) >>> 0) || null;
+    const d = this.depth.get((this.frame.rtp - offset) >>> 0);
+    // Depth whose views do not lie inside this picture (another stream's) is not used.
+    const fits = (v) => v.viewport[0] + v.viewport[2] <= this.frame.width && v.viewport[1] + v.viewport[3] <= this.frame.height;
+    return d && d.views.every(fits) ? d : null;
   }
 
   setGrid(view) {

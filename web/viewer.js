@@ -50,6 +50,8 @@ const conn = new Connection({
   },
   onBinary: (data) => reprojector?.addDepth(data),
   onSession(msg) {
+    // A new session (a reconnect too) numbers its RTP ticks from 0 again: old depth must go.
+    reprojector?.reset();
     // First session of a scene: frame the asset. A reconnect to the same scene keeps the view.
     if (msg.scene !== cameraScene && Array.isArray(msg.center)) {
       camera.reset(msg.center, msg.radius);
@@ -100,13 +102,19 @@ requestAnimationFrame(frame);
 
 attachVideoOrbit($('stage'), video, camera, () => [conn.params?.width || 640, conn.params?.height || 480]);
 
-function render() { renderStatus(conn); }
+// The HUD's glass line: "warp · 687 B · +120 ms" (frames warped, the last depth message's
+// size, how far ahead the pose is predicted) or "off".
+function render() {
+  const on = Boolean(reprojector?.available && reprojector.enabled);
+  const depth = reprojector?.stats.depthBytes ? ` · ${reprojector.stats.depthBytes} B` : '';
+  const ahead = horizonMs > 0 ? ` · +${horizonMs.toFixed(0)} ms` : '';
+  renderStatus(conn, [['glass', on ? `warp${depth}${ahead}` : 'off']]);
+}
 
 function connectFromPickers() {
   const [width, height] = sizeSelect.value.split('x').map(Number);
   const scene = sceneSelect.value;
   if (scene !== cameraScene) cameraScene = null; // new scene: reframe when its session arrives
-  reprojector?.reset();
   conn.connect({ scene, width, height, fps: options.fps, token: options.token, relay: options.relay, depth: Boolean(reprojector?.available) });
 }
 

@@ -342,14 +342,13 @@ fn score(run: &Run, mode: GlassMode, rtt_ms: u32, trace: &Trace, display: &Intri
         let Some(&(sent_ms, camera, horizon)) = run.sent.get(&d.pose_seq) else { continue };
         let true_camera = trace.pose_at(s.t_ms);
         let depth = run.depth.get(&d.pose_seq).and_then(|f| f.views.first());
-        let warped = mode.warps() && depth.is_some();
-        if mode.warps() && depth.is_none() {
+        let target = View { world_from_camera: true_camera, intrinsics: *display };
+        let warped_rgba = if mode.warps() { depth.and_then(|depth| warp(&d.rgba, stream.width, depth, &target, background)) } else { None };
+        let warped = warped_rgba.is_some();
+        if mode.warps() && !warped {
             missing_depth += 1;
         }
-        let shown = match depth.filter(|_| warped) {
-            Some(depth) => warp(&d.rgba, stream.width, depth, &View { world_from_camera: true_camera, intrinsics: *display }, background),
-            None => crop(&d.rgba, stream.width, stream.height, display.width, display.height),
-        };
+        let shown = warped_rgba.unwrap_or_else(|| crop(&d.rgba, stream.width, stream.height, display.width, display.height));
         psnr.push(psnr_rgb(&shown, truth).min(99.0));
         if warped {
             age.push(0.0);

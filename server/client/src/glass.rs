@@ -51,8 +51,15 @@ struct Vertex {
 /// Reprojects one view of a decoded frame to `target`.
 ///
 /// `frame` is the whole decoded picture (RGBA8, `frame_width` wide); the view's pixels are at
-/// `depth.viewport` in it. Returns RGBA8 at `target`'s size.
-pub fn warp(frame: &[u8], frame_width: u32, depth: &DepthView, target: &View, background: [u8; 3]) -> Vec<u8> {
+/// `depth.viewport` in it. Returns RGBA8 at `target`'s size, or `None` when the depth's
+/// viewport does not lie inside the picture (depth of another stream, or corrupt): the
+/// caller then shows the picture as it came.
+pub fn warp(frame: &[u8], frame_width: u32, depth: &DepthView, target: &View, background: [u8; 3]) -> Option<Vec<u8>> {
+    let vp = depth.viewport;
+    let frame_height = frame.len() / 4 / (frame_width.max(1) as usize);
+    if u64::from(vp.x) + u64::from(vp.width) > u64::from(frame_width) || u64::from(vp.y) + u64::from(vp.height) > frame_height as u64 {
+        return None;
+    }
     let tk = target.intrinsics;
     let (tw, th) = (tk.width as usize, tk.height as usize);
     let (cols, rows) = depth.grid();
@@ -97,7 +104,6 @@ pub fn warp(frame: &[u8], frame_width: u32, depth: &DepthView, target: &View, ba
         }
     }
 
-    let vp = depth.viewport;
     let mut out = Vec::with_capacity(4 * tw * th);
     for (k, &(sx, sy)) in from.iter().enumerate() {
         if best[k] == f64::NEG_INFINITY {
@@ -106,7 +112,7 @@ pub fn warp(frame: &[u8], frame_width: u32, depth: &DepthView, target: &View, ba
             out.extend_from_slice(&sample(frame, frame_width, vp, sx, sy));
         }
     }
-    out
+    Some(out)
 }
 
 /// Rasterises one triangle: pixel centres inside it (edges included) whose surface is nearer
@@ -332,6 +338,11 @@ mod tests {
 
     use super::*;
 
+    /// The procedural checkered box, prepared for the fast CPU renderer.
+    fn diffuse() -> Box<dyn nephele_renderer::PreparedAsset> {
+        FastCpuBackend.prepare(Arc::new(generate(&ProceduralConfig::small(Scene::Diffuse)).unwrap())).unwrap()
+    }
+
     fn render(prepared: &dyn nephele_renderer::PreparedAsset, view: View) -> nephele_renderer::Frame {
         let req = ViewRequest { view, instance: Instance::default(), background: glam::Vec3::ONE };
         prepared.render(&[req], &RenderSettings::default()).unwrap().frames.remove(0)
@@ -353,21 +364,24 @@ mod tests {
 
     #[test]
     fn a_warp_to_the_same_camera_is_the_picture_itself() {
-        let asset = Arc::new(generate(&ProceduralConfig::small(Scene::Diffuse)).unwrap());
-        let prepared = FastCpuBackend.prepare(asset).unwrap();
+        let prepared = diffuse();
         let view = View::orbit(DVec3::ZERO, 3.0, 30.0, 20.0, Intrinsics::from_fov_x(160, 120, 0.9));
         let f = render(prepared.as_ref(), view);
         let grid = DepthView::build(&view, Viewport::full(160, 120), &[&f.depth], 160, 120, 8, nephele_wire::depth::DEPTH_LEVELS);
-        let warped = warp(&f.rgba, 160, &grid, &grid.view(), [255, 255, 255]);
+        let warped = warp(&f.rgba, 160, &grid, &grid.view(), [255, 255, 255]).unwrap();
         assert_eq!(psnr_rgb(&warped, &f.rgba), f64::INFINITY);
+        // Depth whose viewport lies outside the picture is not used.
+        let mut stray = grid.clone();
+        stray.viewport.x = 8;
+        assert!(warp(&f.rgba, 160, &stray, &grid.view(), [255, 255, 255]).is_none());
+        assert!(warp(&f.rgba[..4 * 160 * 100], 160, &grid, &grid.view(), [255, 255, 255]).is_none());
     }
 
     /// The warp of a pure rotation equals a direct render at the turned camera away from the
     /// edges the turn reveals: a rotation needs no depth, so only resampling differs.
     #[test]
     fn a_turned_camera_is_reprojected_within_tolerance() {
-        let asset = Arc::new(generate(&ProceduralConfig::small(Scene::Diffuse)).unwrap());
-        let prepared = FastCpuBackend.prepare(asset).unwrap();
+        let prepared = diffuse();
         let k = Intrinsics::from_fov_x(160, 120, 0.9);
         let view = View::orbit(DVec3::ZERO, 3.0, 30.0, 20.0, k);
         let turned = View { world_from_camera: view.world_from_camera * DMat4::from_rotation_y(4f64.to_radians()) * DMat4::from_rotation_x(2f64.to_radians()), ..view };
@@ -375,7 +389,7 @@ mod tests {
         let grid = DepthView::build(&view, Viewport::full(160, 120), &[&f.depth], 160, 120, 8, nephele_wire::depth::DEPTH_LEVELS);
         let bytes = DepthFrame { frame: 1, pose_seq: 1, rtp_ticks: 0, views: vec![grid] }.encode();
         let grid = DepthFrame::decode(&bytes).unwrap().views.remove(0);
-        let warped = warp(&f.rgba, 160, &grid, &turned, [255, 255, 255]);
+        let warped = warp(&f.rgba, 160, &grid, &turned, [255, 255, 255]).unwrap();
         // 4° is ~12 px at this focal length: leave 16 px at each edge.
         let inner = |k: usize| (16..144).contains(&(k % 160)) && (16..104).contains(&(k / 160));
         let warp_db = psnr_where(&warped, &direct.rgba, inner);
@@ -388,14 +402,13 @@ mod tests {
     /// A moved camera (translation too) needs the depth: the warp must beat the stale frame.
     #[test]
     fn a_moved_camera_is_reprojected_by_its_depth() {
-        let asset = Arc::new(generate(&ProceduralConfig::small(Scene::Diffuse)).unwrap());
-        let prepared = FastCpuBackend.prepare(asset).unwrap();
+        let prepared = diffuse();
         let k = Intrinsics::from_fov_x(160, 120, 0.9);
         let view = View::orbit(DVec3::ZERO, 3.0, 30.0, 20.0, k);
         let moved = View::orbit(DVec3::ZERO, 2.9, 34.0, 22.0, k);
         let (f, direct) = (render(prepared.as_ref(), view), render(prepared.as_ref(), moved));
         let grid = DepthView::build(&view, Viewport::full(160, 120), &[&f.depth], 160, 120, 8, nephele_wire::depth::DEPTH_LEVELS);
-        let warped = warp(&f.rgba, 160, &grid, &moved, [255, 255, 255]);
+        let warped = warp(&f.rgba, 160, &grid, &moved, [255, 255, 255]).unwrap();
         let (warp_db, stale_db) = (psnr_rgb(&warped, &direct.rgba), psnr_rgb(&f.rgba, &direct.rgba));
         if let Ok(dir) = std::env::var("NEPHELE_GLASS_DUMP") {
             for (name, px) in [("src", &f.rgba), ("warped", &warped), ("direct", &direct.rgba)] {
